@@ -1,0 +1,121 @@
+"""A step as a pipeline of stages, assembled once from the scene.
+
+Each stage is one module under ``collision_node/stages``; the pipeline is
+built when a world is created (and again on reset), so an effect the scene
+does not declare is simply not in the list and costs nothing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from .accuracy import AccuracySettings
+from .effects import Effects
+from .state import ParticleState
+
+
+@dataclass
+class StepStats:
+    """Counters a world accumulates over its steps."""
+
+    collisions: int = 0
+    wall_collisions: int = 0
+    max_penetration: float = 0.0
+    dissipated: dict = field(default_factory=dict)
+
+    def add_dissipated(self, effect: str, energy: float) -> None:
+        """Book ``energy`` joules as removed by ``effect``."""
+        self.dissipated[effect] = self.dissipated.get(effect, 0.0) + energy
+
+
+@dataclass
+class Contacts:
+    """Overlapping particle pairs found by the narrowphase of one step."""
+
+    i: np.ndarray
+    j: np.ndarray
+    normal: np.ndarray
+    penetration: np.ndarray
+
+    @classmethod
+    def empty(cls) -> 'Contacts':
+        """Return a set of no contacts."""
+        none = np.zeros(0, dtype=np.int64)
+        return cls(none, none, np.zeros((0, 3)), np.zeros(0))
+
+    def __len__(self) -> int:
+        """Return the number of contacts."""
+        return int(self.i.shape[0])
+
+
+@dataclass
+class StepContext:
+    """What the stages of one step share: the state, settings and results."""
+
+    state: ParticleState
+    dt: float
+    dimensions: int
+    effects: Effects
+    accuracy: AccuracySettings
+    stats: StepStats
+    pair_i: Optional[np.ndarray] = None
+    pair_j: Optional[np.ndarray] = None
+    contacts: Optional[Contacts] = None
+
+
+class Stage:
+    """One part of a step; subclasses live one per module in ``stages/``."""
+
+    name = 'stage'
+
+    def run(self, ctx: StepContext) -> None:
+        """Advance or correct ``ctx.state`` in place."""
+        raise NotImplementedError
+
+    def describe(self) -> str:
+        """Return one line that says what the stage does."""
+        return self.name
+
+
+class Pipeline:
+    """An ordered list of stages run once per (sub)step."""
+
+    def __init__(self, stages: list[Stage]) -> None:
+        """Keep the stages in the order they will run."""
+        self.stages = stages
+
+    @property
+    def names(self) -> list[str]:
+        """Stage names in run order."""
+        return [stage.name for stage in self.stages]
+
+    def run(self, ctx: StepContext) -> None:
+        """Run every stage in order on one step context."""
+        for stage in self.stages:
+            stage.run(ctx)
+
+    def explain(self) -> str:
+        """Return the pipeline as numbered lines, one per stage."""
+        return '\n'.join(f'{k + 1}. {stage.name}: {stage.describe()}'
+                         for k, stage in enumerate(self.stages))
+
+
+def build_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
+    """Assemble the stages a scene's effects and accuracy settings call for."""
+    from .stages.broadphase import BroadphaseStage
+    from .stages.drift import DriftStage
+    from .stages.narrowphase import NarrowphaseStage
+    from .stages.separation import SeparationStage
+    from .stages.sequential_impulses import SequentialImpulseStage
+    from .stages.walls import WallStage
+
+    stages: list[Stage] = [DriftStage(), BroadphaseStage(), NarrowphaseStage(),
+                           SequentialImpulseStage(effects.particle_restitution,
+                                                  accuracy.iterations),
+                           SeparationStage()]
+    if effects.walls is not None:
+        stages.append(WallStage(effects.walls))
+    return Pipeline(stages)

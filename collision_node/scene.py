@@ -1,0 +1,183 @@
+"""Scene files (YAML): the one format for the runner, the node and the benchmarks.
+
+``load_scene`` reads a file or a shipped scene name, ``parse_scene`` checks
+a mapping, ``parse_spawn`` checks a spawn request against the same particle
+schema. All of them raise :class:`SceneError` with one line naming the
+source, the particle index and the field.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Optional, Union
+
+import yaml
+
+from .accuracy import AccuracySettings, parse_accuracy
+from .effects import Effects, parse_effects
+from .generate import generate_state, parse_generate
+from .particles import PARTICLE_KEYS, build_state, parse_particle
+from .state import ParticleState
+from .validation import SceneError, fail, number, reject_unknown_keys, require_mapping
+
+SCENE_KEYS = ('name', 'dimensions', 'dt', 'duration', 'accuracy', 'effects', 'particles',
+              'generate')
+DEFAULT_DT = 1.0 / 240.0
+DEFAULT_DURATION = 1.0
+MAX_DT = 1.0
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A validated scene: settings plus the initial particle state."""
+
+    name: str
+    dimensions: int
+    dt: float
+    duration: float
+    accuracy: AccuracySettings
+    effects: Effects
+    initial: ParticleState
+    source: str
+
+    def with_accuracy(self, accuracy: AccuracySettings) -> 'Scene':
+        """Return the same scene under other accuracy settings."""
+        return Scene(self.name, self.dimensions, self.dt, self.duration, accuracy,
+                     self.effects, self.initial, self.source)
+
+
+def shipped_scene_dirs() -> list[Path]:
+    """Directories that may hold the scenes shipped with the package.
+
+    In a source checkout (or an editable install) they sit beside the
+    package; in a colcon or pip install they live under the prefix's
+    ``share/collision_node/scenes``.
+    """
+    here = Path(__file__).resolve().parent
+    candidates = [here.parent / 'scenes', Path(sys.prefix) / 'share' / 'collision_node' / 'scenes']
+    for parent in here.parents:
+        candidates.append(parent / 'share' / 'collision_node' / 'scenes')
+    return [c for c in candidates if c.is_dir()]
+
+
+def shipped_scene_names() -> list[str]:
+    """Names of the shipped scenes (file names without ``.yaml``)."""
+    names: set[str] = set()
+    for directory in shipped_scene_dirs():
+        names.update(p.stem for p in directory.glob('*.yaml'))
+    return sorted(names)
+
+
+def resolve_scene_path(path_or_name: Union[str, Path]) -> Path:
+    """Find a scene by file path, or by the name of a shipped scene."""
+    path = Path(path_or_name)
+    if path.is_file():
+        return path
+    for directory in shipped_scene_dirs():
+        candidate = directory / f'{path_or_name}.yaml'
+        if candidate.is_file():
+            return candidate
+    raise SceneError(f'{path_or_name}: no such scene file or shipped scene '
+                     f'(shipped: {", ".join(shipped_scene_names()) or "none found"})')
+
+
+def load_scene(path_or_name: Union[str, Path]) -> Scene:
+    """Read and validate a scene file (or a shipped scene by name)."""
+    path = resolve_scene_path(path_or_name)
+    try:
+        text = path.read_text(encoding='utf-8')
+    except (OSError, UnicodeDecodeError) as error:
+        raise SceneError(f'{path}: cannot read: {error}') from None
+    return parse_scene_text(text, str(path), default_name=path.stem)
+
+
+def parse_scene_text(text: str, source: str, default_name: str = 'scene') -> Scene:
+    """Parse YAML (or JSON, a subset of YAML) text into a scene."""
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise SceneError(f'{source}: not valid YAML: {_one_line(error)}') from None
+    return parse_scene(data, source, default_name)
+
+
+def parse_scene(data: Any, source: str, default_name: str = 'scene') -> Scene:
+    """Validate a scene mapping; ``source`` prefixes every error message."""
+    data = require_mapping(data, source)
+    reject_unknown_keys(data, SCENE_KEYS, source)
+    name = data.get('name', default_name)
+    if not isinstance(name, str) or not name:
+        fail(f'{source}: name', f'expected a non-empty string, got {name!r}')
+    dimensions = data.get('dimensions', 3)
+    if dimensions not in (2, 3) or isinstance(dimensions, bool):
+        fail(f'{source}: dimensions', f'must be 2 or 3, got {dimensions!r}')
+    dt = number(data.get('dt', DEFAULT_DT), f'{source}: dt', minimum=0.0,
+                exclusive_minimum=True, maximum=MAX_DT)
+    duration = number(data.get('duration', DEFAULT_DURATION), f'{source}: duration',
+                      minimum=0.0)
+    accuracy = parse_accuracy(data.get('accuracy'), f'{source}: accuracy')
+    effects = parse_effects(data.get('effects'), f'{source}: effects', dimensions)
+    state = parse_particle_section(data.get('particles'), data.get('generate'), source,
+                                   dimensions, first_id=0)
+    return Scene(name=name, dimensions=dimensions, dt=dt, duration=duration,
+                 accuracy=accuracy, effects=effects, initial=state, source=source)
+
+
+def parse_particle_section(particles: Any, generate: Any, source: str, dimensions: int,
+                           first_id: int) -> ParticleState:
+    """Validate ``particles`` and ``generate`` lists and build their state."""
+    if particles is None:
+        particles = []
+    if not isinstance(particles, list):
+        fail(f'{source}: particles', f'expected a list, got {type(particles).__name__}')
+    records = [parse_particle(spec, f'{source}: particles[{index}]', dimensions, PARTICLE_KEYS)
+               for index, spec in enumerate(particles)]
+    state = build_state(records, first_id)
+    if generate is None:
+        generate = []
+    if not isinstance(generate, list):
+        fail(f'{source}: generate', f'expected a list, got {type(generate).__name__}')
+    specs = [parse_generate(spec, f'{source}: generate[{index}]', dimensions)
+             for index, spec in enumerate(generate)]
+    for spec in specs:
+        state = state.concatenate(generate_state(spec, dimensions, first_id + len(state)))
+    return state
+
+
+def parse_spawn(text: str, dimensions: int, first_id: int,
+                source: str = 'spawn') -> ParticleState:
+    """Validate a spawn request (YAML or JSON) with the scene's particle schema.
+
+    Accepted: one particle mapping, a list of them, one ``generate`` entry
+    (a mapping with ``kind``), or ``{particles: [...], generate: [...]}``.
+    """
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise SceneError(f'{source}: not valid YAML or JSON: {_one_line(error)}') from None
+    if isinstance(data, list):
+        return parse_particle_section(data, None, source, dimensions, first_id)
+    data = require_mapping(data, source)
+    if 'kind' in data:
+        return parse_particle_section(None, [data], source, dimensions, first_id)
+    if 'particles' in data or 'generate' in data:
+        reject_unknown_keys(data, ('particles', 'generate'), source)
+        return parse_particle_section(data.get('particles'), data.get('generate'), source,
+                                      dimensions, first_id)
+    return parse_particle_section([data], None, source, dimensions, first_id)
+
+
+def _one_line(error: Exception) -> str:
+    """Collapse a multi-line parser message into one line."""
+    return ' '.join(str(error).split())
+
+
+def scene_summary(scene: Scene, count: Optional[int] = None) -> str:
+    """Return a one-line description of a scene."""
+    n = len(scene.initial) if count is None else count
+    return f'{scene.name}: {n} particles, {scene.dimensions}-D, dt={scene.dt:g} s'
+
+
+__all__ = ['Scene', 'SceneError', 'load_scene', 'parse_scene', 'parse_scene_text',
+           'parse_spawn', 'shipped_scene_names']

@@ -1,0 +1,100 @@
+"""A world: a scene's particles advanced step by step through its pipeline.
+
+The state is passed into each step's stages; a world owns nothing else
+than the state, the clock, the counters and the pipeline built from its
+scene, so the node, the runner and the benchmarks drive it alike.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from .pipeline import StepContext, StepStats, build_pipeline
+from .scene import Scene, parse_spawn
+from .state import ParticleState
+from .validation import SceneError
+
+
+class NonFiniteStateError(FloatingPointError):
+    """A step produced NaN or inf; the world refuses to go on silently."""
+
+
+class World:
+    """Particles of one scene, stepped with a fixed dt."""
+
+    def __init__(self, scene: Scene, max_particles: Optional[int] = None) -> None:
+        """Build the pipeline and load the scene's initial state."""
+        self.scene = scene
+        self.max_particles = max_particles
+        if max_particles is not None and len(scene.initial) > max_particles:
+            raise SceneError(f'{scene.source}: {len(scene.initial)} particles exceed '
+                             f'max_particles = {max_particles}')
+        self.reset()
+
+    def reset(self) -> None:
+        """Return to the scene's initial state at time 0; drop spawned particles."""
+        self.state = self.scene.initial.copy()
+        self.steps = 0
+        self.stats = StepStats()
+        self.pipeline = build_pipeline(self.scene.effects, self.scene.accuracy)
+
+    @property
+    def dt(self) -> float:
+        """Seconds per step."""
+        return self.scene.dt
+
+    @property
+    def time(self) -> float:
+        """Simulated time in seconds (steps times dt, so it never drifts)."""
+        return self.steps * self.scene.dt
+
+    def step(self, count: int = 1) -> None:
+        """Advance ``count`` steps of dt, each split into the preset's substeps."""
+        substeps = self.scene.accuracy.substeps
+        sub_dt = self.scene.dt / substeps
+        for _ in range(count):
+            for _ in range(substeps):
+                ctx = StepContext(state=self.state, dt=sub_dt,
+                                  dimensions=self.scene.dimensions,
+                                  effects=self.scene.effects, accuracy=self.scene.accuracy,
+                                  stats=self.stats)
+                self.pipeline.run(ctx)
+            self.steps += 1
+            self._check_finite()
+
+    def _check_finite(self) -> None:
+        """Raise instead of letting NaN or inf spread through the state."""
+        s = self.state
+        if not (np.isfinite(s.position).all() and np.isfinite(s.velocity).all()):
+            raise NonFiniteStateError(f'step {self.steps}: a position or velocity became '
+                                      'non-finite')
+
+    def spawn(self, particles: ParticleState) -> np.ndarray:
+        """Append validated particles atomically and return their new ids."""
+        if self.max_particles is not None and \
+                len(self.state) + len(particles) > self.max_particles:
+            raise SceneError(f'spawn: {len(particles)} particles would make '
+                             f'{len(self.state) + len(particles)}, over max_particles = '
+                             f'{self.max_particles}')
+        first = len(self.state)
+        ids = np.arange(first, first + len(particles), dtype=np.int64)
+        self.state = self.state.concatenate(particles.with_arrays(ids=ids))
+        return ids
+
+    def spawn_text(self, text: str, source: str = 'spawn') -> np.ndarray:
+        """Validate a spawn request (YAML or JSON) and append it atomically."""
+        return self.spawn(parse_spawn(text, self.scene.dimensions, len(self.state), source))
+
+    def explain(self) -> str:
+        """Return the step pipeline, one numbered stage per line."""
+        return self.pipeline.explain()
+
+    def kinetic_energy(self) -> float:
+        """Total kinetic energy in joules."""
+        return self.state.kinetic_energy()
+
+    def momentum(self) -> np.ndarray:
+        """Total linear momentum in kg m/s."""
+        return self.state.momentum()
