@@ -13,9 +13,9 @@ from typing import Any, Optional
 import numpy as np
 
 from .generate import parse_region
-from .validation import fail, number, reject_unknown_keys, require_mapping
+from .validation import number, reject_unknown_keys, require_mapping, vector
 
-EFFECT_KEYS = ('walls', 'restitution')
+EFFECT_KEYS = ('gravity', 'walls', 'restitution')
 
 
 @dataclass(frozen=True)
@@ -31,6 +31,7 @@ class Walls:
 class Effects:
     """Validated effects of a scene; ``None`` means not declared."""
 
+    gravity: Optional[np.ndarray] = None
     walls: Optional[Walls] = None
     restitution: Optional[float] = None
 
@@ -55,10 +56,11 @@ def parse_effects(value: Any, where: str, dimensions: int) -> Effects:
         wall_e = number(spec.get('restitution', 1.0), f'{where}.walls.restitution',
                         minimum=0.0, maximum=1.0)
         walls = Walls(low=low, high=high, restitution=wall_e)
+    gravity = None
+    if 'gravity' in value:
+        gravity = vector(value['gravity'], f'{where}.gravity', dimensions, max_abs=1e6)
     restitution = None
     if 'restitution' in value:
         restitution = number(value['restitution'], f'{where}.restitution', minimum=0.0,
                              maximum=1.0)
-    if walls is None and restitution is None and value:
-        fail(where, 'no effect declared')
-    return Effects(walls=walls, restitution=restitution)
+    return Effects(gravity=gravity, walls=walls, restitution=restitution)

@@ -42,9 +42,10 @@ def parse_generate(spec: Any, where: str, dimensions: int) -> dict:
     reject_unknown_keys(spec, GENERATE_KEYS, where)
     for key in ('kind', 'count', 'radius', 'mass', 'region'):
         if key not in spec:
-            fail(f'{where}.{key}', f'missing (required: kind, count, radius, mass, region)')
+            fail(f'{where}.{key}', 'missing (required: kind, count, radius, mass, region)')
     if spec['kind'] not in GENERATOR_KINDS:
-        fail(f'{where}.kind', f'unknown kind {spec["kind"]!r} (known: {", ".join(GENERATOR_KINDS)})')
+        fail(f'{where}.kind',
+             f'unknown kind {spec["kind"]!r} (known: {", ".join(GENERATOR_KINDS)})')
     out = {
         'kind': spec['kind'],
         'count': integer(spec['count'], f'{where}.count', minimum=1),

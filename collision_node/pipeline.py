@@ -112,6 +112,7 @@ def build_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
     from .stages.sequential_impulses import SequentialImpulseStage
     from .stages.walls import WallStage
 
+    # Gravity (effects issue) is parsed but its stage is still to come.
     stages: list[Stage] = [DriftStage(), BroadphaseStage(), NarrowphaseStage(),
                            SequentialImpulseStage(effects.particle_restitution,
                                                   accuracy.iterations),

@@ -50,13 +50,13 @@ class ParticleState:
 
     @property
     def mass(self) -> np.ndarray:
-        """Masses in kg; ``inf`` for static particles."""
+        """Return masses in kg, ``inf`` for static particles."""
         with np.errstate(divide='ignore'):
             return np.where(self.inv_mass > 0.0, 1.0 / self.inv_mass, np.inf)
 
     @property
     def dynamic(self) -> np.ndarray:
-        """Boolean mask of particles that can move (finite mass)."""
+        """Return the mask of particles that can move (finite mass)."""
         return self.inv_mass > 0.0
 
     def copy(self) -> 'ParticleState':
@@ -103,8 +103,8 @@ class ParticleState:
         """Linear plus rotational kinetic energy of the dynamic particles, J."""
         dyn = self.dynamic
         mass = 1.0 / self.inv_mass[dyn]
-        linear = 0.5 * float(np.sum(mass * np.einsum('ij,ij->i', self.velocity[dyn],
-                                                             self.velocity[dyn])))
+        v = self.velocity[dyn]
+        linear = 0.5 * float(np.sum(mass * np.einsum('ij,ij->i', v, v)))
         if self.angular_velocity is None:
             return linear
         inertia = 0.4 * mass * self.radius[dyn] ** 2
