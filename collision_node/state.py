@@ -60,7 +60,7 @@ class ParticleState:
         return self.inv_mass > 0.0
 
     def copy(self) -> 'ParticleState':
-        """Return a deep copy (arrays are copied, not shared)."""
+        """Return an independent copy: every array is copied, none shared."""
         kwargs = {}
         for f in fields(self):
             value = getattr(self, f.name)
