@@ -24,6 +24,8 @@ setup(
     tests_require=['pytest'],
     entry_points={
         'console_scripts': [
+            'collision_node = collision_node.node:main',
+            'viewer = collision_node.viewer:main',
             'simulate = collision_node.simulate:main',
         ],
     },
