@@ -237,3 +237,209 @@ def test_case06_dense_cluster_of_1000_resolves_without_explosion(preset, deep_pr
         assert max_penetration(world) <= 1e-3 * radius
     else:
         assert max_penetration(world) < penetration0
+
+
+# 8. Scale extremes ------------------------------------------------------------------------
+
+def test_case08_scale_extremes_in_one_scene(preset):
+    """Radii 1e-6 and 1e6, speeds 1e-12 and 1e6, positions 1e7 m, all in one world.
+
+    Three independent impacts resolve in the first step: a 1 um ball
+    bouncing off a 1,000 km ball, two 1 um balls closing at 1e-12 m/s
+    ten thousand kilometres from the origin, and two 1,000 km balls
+    closing at 2e6 m/s.
+    """
+    dt = 1.0 / 240.0
+    big, tiny = 1e6, 1e-6
+    particles = [
+        ball([0, 0, 0], big, 1e18),                                       # 0: huge, at rest
+        ball([big + tiny + 2e-6, 0, 0], tiny, 1e-18, [-1e-3, 0, 0]),      # 1: tiny, -> 0
+        ball([-0.95e-6, 1e7, 0], tiny, 1e-15, [1e-12, 0, 0]),             # 2: slow pair,
+        ball([0.95e-6, 1e7, 0], tiny, 1e-15, [-1e-12, 0, 0]),             # 3: at 1e7 m
+        ball([-big - 1e3, -1e7, 0], big, 1.0, [1e6, 0, 0]),               # 4: fast pair,
+        ball([big + 1e3, -1e7, 0], big, 3.0, [-1e6, 0, 0]),               # 5: at 1e7 m
+    ]
+    world = build(preset, particles, dt=dt)
+    world.step()
+    assert_finite(world)
+    assert world.stats.collisions == 3
+    v = world.state.velocity
+    # Tiny off huge: v' = ((m1 - m2) v) / (m1 + m2) and 2 m1 v / (m1 + m2).
+    assert v[1, 0] == pytest.approx(1e-3 * (1e18 - 1e-18) / (1e18 + 1e-18), rel=1e-12)
+    assert v[0, 0] == pytest.approx(-2e-18 * 1e-3 / (1e18 + 1e-18), rel=1e-12)
+    # Slow pair, equal masses: velocities exchange exactly.
+    np.testing.assert_array_equal(v[2], [-1e-12, 0, 0])
+    np.testing.assert_array_equal(v[3], [1e-12, 0, 0])
+    # Fast pair, masses 1 and 3: lecture formula gives -2e6 and 0.
+    assert v[4, 0] == pytest.approx(-2e6, rel=1e-12)
+    assert abs(v[5, 0]) <= 1e-12 * 1e6
+    np.testing.assert_array_equal(v[:, 1:], 0.0)
+    # Every pair is left separated (or touching to rounding at its scale).
+    world.step(3)
+    assert world.stats.collisions == 3
+    s = world.state
+    for a, b in [(0, 1), (2, 3), (4, 5)]:
+        gap = np.linalg.norm(s.position[a] - s.position[b]) - s.radius[a] - s.radius[b]
+        ulp = np.spacing(np.max(np.abs(s.position[[a, b]])))
+        assert gap >= -4 * ulp
+    assert s.position[2, 0] < s.position[3, 0]
+
+
+# 9. Grazing contacts and walls ------------------------------------------------------------
+
+@pytest.mark.parametrize('impact_parameter', [1.0 - 1e-12, 1.0, 1.0 + 1e-12],
+                         ids=['inside', 'exact', 'outside'])
+def test_case09_grazing_contact_barely_deflects_and_conserves(preset, impact_parameter):
+    """Impact parameter b = r1 + r2 (1 +- 1e-12), swept over 16 phases of a step.
+
+    Touching happens only while |x| < sqrt(reach^2 - b^2) <= 1.5e-6 m, so
+    the largest possible normal component, and with it the velocity change,
+    is 2 v sqrt(2e-12) = 2.9e-6 v; outside (b > reach) nothing changes at all.
+    """
+    dt = 1.0 / 256.0
+    speed = 1.0
+    bound = 2.0 * speed * np.sqrt(2e-12) * 1.01
+    # 16 phases over a step, and three that end a step inside the touching window
+    # (x = -1e-7, -5e-7, -1e-6 m at step 256), so the contact is surely seen.
+    starts = [-1.0 - phase / 16.0 * speed * dt for phase in range(16)]
+    starts += [-1.0 - 1e-7, -1.0 - 5e-7, -1.0 - 1e-6]
+    collisions = 0
+    for start in starts:
+        world = build(preset, [ball([start, impact_parameter, 0], 0.5, 1.0, [speed, 0, 0]),
+                               ball([0, 0, 0], 0.5, 2.0)], dt=dt)
+        world.step(320)
+        collisions += world.stats.collisions
+        assert_finite(world)
+        v = world.state.velocity
+        momentum = world.momentum()
+        np.testing.assert_allclose(momentum, [speed, 0, 0], atol=1e-15)
+        assert world.kinetic_energy() == pytest.approx(0.5 * speed ** 2, rel=1e-14)
+        assert np.linalg.norm(v[0] - [speed, 0, 0]) <= bound
+        if impact_parameter > 1.0:
+            assert world.stats.collisions == 0
+            np.testing.assert_array_equal(v, [[speed, 0, 0], [0, 0, 0]])
+        assert world.state.position[0, 0] > 0.2          # passed the contact point
+    if impact_parameter < 1.0:
+        assert collisions >= 3
+
+
+WALLS = {'min': [-1.0, -1.0, -1.0], 'max': [1.0, 1.0, 1.0]}
+
+
+def test_case09_particle_exactly_at_a_wall_stays_put(preset):
+    """Touching a wall, at rest: no wall hit, no motion, ever."""
+    world = build(preset, [ball([-0.75, 0.0, 0.5], 0.25, 1.0)], dt=0.01,
+                  effects={'walls': WALLS})
+    world.step(100)
+    np.testing.assert_array_equal(world.state.position[0], [-0.75, 0.0, 0.5])
+    np.testing.assert_array_equal(world.state.velocity[0], 0.0)
+    assert world.stats.wall_collisions == 0
+
+
+@pytest.mark.parametrize('restitution', [1.0, 0.5])
+def test_case09_particle_at_a_wall_moving_into_it_reflects(preset, restitution):
+    """Touching a wall and moving into it: v_n -> -e v_n at once, tangential untouched."""
+    walls = dict(WALLS, restitution=restitution)
+    world = build(preset, [ball([-0.75, 0.0, 0.5], 0.25, 1.0, [-2.0, 0.5, 0.0])],
+                  dt=1.0 / 256.0, effects={'walls': walls})
+    world.step()
+    np.testing.assert_array_equal(world.state.velocity[0], [2.0 * restitution, 0.5, 0.0])
+    assert world.stats.wall_collisions == 1
+    assert world.state.position[0, 0] >= -0.75
+    world.step(64)
+    assert world.stats.wall_collisions == 1
+
+
+def test_case09_particle_sliding_along_a_wall_never_hits_it(preset):
+    """Touching the floor, moving parallel to it: it slides on, exactly."""
+    world = build(preset, [ball([-0.5, -0.75, 0.0], 0.25, 1.0, [1.0, 0.0, 0.5])],
+                  dt=1.0 / 256.0, effects={'walls': WALLS})
+    world.step(128)
+    assert world.stats.wall_collisions == 0
+    np.testing.assert_array_equal(world.state.velocity[0], [1.0, 0.0, 0.5])
+    assert world.state.position[0, 1] == -0.75
+    np.testing.assert_allclose(world.state.position[0, [0, 2]], [0.0, 0.25], atol=1e-15)
+
+
+def test_case09_particle_in_a_corner_touching_three_walls(preset):
+    """At rest in a corner it stays; driven into the corner it bounces off all three."""
+    corner = [-0.75, -0.75, -0.75]
+    world = build(preset, [ball(corner, 0.25, 1.0), ball([0.5, 0.5, 0.5], 0.25, 1.0)],
+                  dt=1.0 / 256.0, effects={'walls': WALLS})
+    world.step(50)
+    np.testing.assert_array_equal(world.state.position[0], corner)
+    assert world.stats.wall_collisions == 0
+    moving = build(preset, [ball(corner, 0.25, 2.0, [-1.0, -2.0, -3.0])],
+                   dt=1.0 / 256.0, effects={'walls': WALLS})
+    moving.step()
+    np.testing.assert_array_equal(moving.state.velocity[0], [1.0, 2.0, 3.0])
+    assert moving.stats.wall_collisions == 3
+    assert np.all(moving.state.position[0] >= -0.75)
+    assert moving.kinetic_energy() == 14.0
+
+
+def test_case09_particle_overlapping_walls_is_pushed_in_without_gaining_energy(preset):
+    """Half inside two walls at rest: moved back inside, still at rest."""
+    world = build(preset, [ball([-0.875, 0.875, 0.0], 0.25, 1.0)], dt=0.01,
+                  effects={'walls': WALLS})
+    world.step()
+    np.testing.assert_array_equal(world.state.position[0], [-0.75, 0.75, 0.0])
+    assert world.kinetic_energy() == 0.0
+
+
+# 11. Long run -----------------------------------------------------------------------------
+
+LONG_RUN_DRIFT_BOUND = 1e-9     # relative kinetic energy drift over the whole run
+
+
+def test_case11_long_elastic_run_keeps_energy(preset, deep_profile):
+    """Six balls of masses 1..6 in an elastic 2-D box: 1,000,000 steps (deep) or 10,000."""
+    positions = [(-0.5, -0.5), (0.5, -0.5), (-0.5, 0.5), (0.5, 0.5), (0.0, 0.0), (0.0, 0.6)]
+    rng = np.random.default_rng(11)
+    particles = [ball(p, 0.1, 1.0 + k, rng.normal(size=2)) for k, p in enumerate(positions)]
+    world = build(preset, particles, dimensions=2, dt=0.01,
+                  effects={'walls': {'min': [-1, -1], 'max': [1, 1]}})
+    energy0 = world.kinetic_energy()
+    steps = 1_000_000 if deep_profile else 10_000
+    chunk = 1000
+    for _ in range(steps // chunk):
+        world.step(chunk)
+        assert abs(world.kinetic_energy() / energy0 - 1.0) <= LONG_RUN_DRIFT_BOUND
+        assert np.all(np.abs(world.state.position[:, :2]) <= 0.9 + 1e-12)
+    assert_finite(world)
+    np.testing.assert_array_equal(world.state.position[:, 2], 0.0)
+    assert world.stats.collisions >= steps // 50          # it really was a busy box
+    assert world.stats.wall_collisions >= steps // 50
+    assert max_penetration(world) <= 0.1
+
+
+# 12. Impact phase -------------------------------------------------------------------------
+
+PHASES = 16
+PHASE_SPREAD_BOUND = 0.02
+
+
+@pytest.mark.parametrize('restitution', [1.0, 0.5, 0.1])
+def test_case12_restitution_does_not_depend_on_impact_phase(preset, restitution):
+    """Head-on ball-ball and ball-wall impacts, starting gap swept over one step."""
+    dt = 0.01
+    speed = 1.0
+    ball_ball, ball_wall = [], []
+    for phase in range(PHASES):
+        gap = 0.05 + phase / PHASES * speed * dt
+        pair = build(preset, [ball([-0.5 - gap, 0, 0], 0.5, 1.0, [speed, 0, 0]),
+                              ball([0.5, 0, 0], 0.5, 1.0, [-speed, 0, 0])], dt=dt,
+                     effects={'restitution': restitution})
+        pair.step(20)
+        assert pair.stats.collisions == 1
+        v = pair.state.velocity[:, 0]
+        ball_ball.append((v[1] - v[0]) / (2.0 * speed))
+        wall = build(preset, [ball([-0.5 + gap, 0, 0], 0.5, 1.0, [-speed, 0, 0])], dt=dt,
+                     effects={'walls': {'min': [-1, -1, -1], 'max': [10, 1, 1],
+                                        'restitution': restitution}})
+        wall.step(20)
+        assert wall.stats.wall_collisions == 1
+        ball_wall.append(wall.state.velocity[0, 0] / speed)
+    for measured in (np.array(ball_ball), np.array(ball_wall)):
+        assert measured.max() - measured.min() <= PHASE_SPREAD_BOUND
+        np.testing.assert_allclose(measured, restitution, atol=PHASE_SPREAD_BOUND / 2)
