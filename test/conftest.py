@@ -13,7 +13,7 @@ from collision_node import World, parse_scene
 # derandomized so CI is reproducible; ``deep`` is the long search, run as
 #   HYPOTHESIS_PROFILE=deep python -m pytest test/test_hard_cases.py test/test_fuzz.py
 # and it also lengthens the hard cases that have a long form (docs/stability.md).
-settings.register_profile('fast', max_examples=30, deadline=None, derandomize=True,
+settings.register_profile('fast', max_examples=100, deadline=None, derandomize=True,
                           database=None, suppress_health_check=[HealthCheck.too_slow])
 settings.register_profile('deep', max_examples=3000, deadline=None,
                           suppress_health_check=[HealthCheck.too_slow])

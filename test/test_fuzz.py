@@ -1,0 +1,116 @@
+"""Property-based fuzzing of whole steps: random small scenes, invariants after every step.
+
+Scenes: 2 to 8 particles in 2-D or 3-D, radii over 1.5 orders of
+magnitude, masses over 12 (and static ones), speeds over 9 (aimed mostly
+inwards so that impacts happen), any subset of
+the effects (walls with their restitution, particle restitution), any
+accuracy preset, dt from 1e-4 to 1e-2 s. Invariants after every step:
+
+- every position and velocity is finite; static particles never move;
+  a 2-D scene stays in the z = 0 plane;
+- momentum is conserved when nothing external acts (no walls, no static
+  particles): to 1e-12 of the sum of |m v|;
+- kinetic energy never increases (e <= 1): by at most 1e-12 relative;
+- starting without overlap, no overlap ever exceeds one step of closing
+  travel, 2 v_max dt (v_max: the largest speed seen so far).
+
+CI runs the ``fast`` profile (derandomized); the deep search is
+``HYPOTHESIS_PROFILE=deep python -m pytest test/test_fuzz.py`` (see
+docs/stability.md).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import assume, event, given, strategies as st
+
+from collision_node import World, parse_scene
+from collision_node.accuracy import PRESETS
+from conftest import HYPOTHESIS_PROFILE
+from test_hard_cases import max_penetration
+
+STEPS = 200 if HYPOTHESIS_PROFILE == 'deep' else 30
+ENERGY_TOLERANCE = 1e-12
+MOMENTUM_TOLERANCE = 1e-12
+BOX = 0.6
+
+
+def log_uniform(low_exponent: float, high_exponent: float):
+    """Return a strategy for 10**u with u uniform in [low, high]."""
+    return st.floats(low_exponent, high_exponent).map(lambda u: float(10.0 ** u))
+
+
+@st.composite
+def scenes(draw) -> dict:
+    """Draw a small random scene mapping (as a scene file would hold it)."""
+    dimensions = draw(st.sampled_from([2, 3]))
+    count = draw(st.integers(2, 8))
+    dt = draw(log_uniform(-4.0, -2.0))
+    coordinate = st.floats(-BOX, BOX)
+    particles = []
+    for _ in range(count):
+        position = np.array([draw(coordinate) for _ in range(dimensions)])
+        # Mostly towards the middle, so that impacts happen within the run: the
+        # distance covered over the run is drawn, from 0.1 to 3 box widths, and
+        # one particle in four is slowed by up to 6 orders of magnitude.
+        inward = -position / max(float(np.linalg.norm(position)), 1e-9)
+        direction = inward + np.array([draw(st.floats(-0.3, 0.3)) for _ in range(dimensions)])
+        direction /= max(float(np.linalg.norm(direction)), 1e-9)
+        speed = draw(log_uniform(-1.0, np.log10(6.0 * BOX))) / (STEPS * dt)
+        if draw(st.integers(0, 3)) == 0:
+            speed *= draw(log_uniform(-6.0, 0.0))
+        static = draw(st.integers(0, 5)) == 0                 # one in six is static
+        particles.append({
+            'position': position.tolist(),
+            'velocity': [0.0] * dimensions if static else (speed * direction).tolist(),
+            'radius': draw(log_uniform(-2.0, -0.5)),
+            'mass': float('inf') if static else draw(log_uniform(-6.0, 6.0)),
+        })
+    effects = {}
+    if draw(st.booleans()):
+        walls = {'min': [-BOX - 0.4] * dimensions, 'max': [BOX + 0.4] * dimensions}
+        if draw(st.booleans()):
+            walls['restitution'] = draw(st.floats(0.0, 1.0))
+        effects['walls'] = walls
+    if draw(st.booleans()):
+        effects['restitution'] = draw(st.floats(0.0, 1.0))
+    return {'dimensions': dimensions, 'dt': dt,
+            'accuracy': draw(st.sampled_from(sorted(PRESETS))), 'effects': effects,
+            'particles': particles}
+
+
+def overlapping(world: World) -> bool:
+    """Say whether any two particles overlap."""
+    return max_penetration(world) > 0.0
+
+
+@given(scenes())
+def test_fuzz_invariants_hold_after_every_step(scene):
+    world = World(parse_scene(scene, 'fuzz'))
+    assume(not overlapping(world))
+    s = world.state
+    static = ~s.dynamic
+    static_position = s.position[static].copy()
+    isolated = 'walls' not in scene['effects'] and not static.any()
+    dt = world.dt
+    fastest = 0.0
+    for step in range(STEPS):
+        fastest = max(fastest, float(np.max(np.linalg.norm(s.velocity, axis=1))))
+        energy = world.kinetic_energy()
+        momentum = world.momentum()
+        momentum_scale = float(np.sum(np.linalg.norm(s.velocity[~static], axis=1)
+                                      / s.inv_mass[~static]))
+        world.step()
+        s = world.state
+        where = f'step {step + 1}'
+        assert np.isfinite(s.position).all() and np.isfinite(s.velocity).all(), where
+        np.testing.assert_array_equal(s.position[static], static_position, err_msg=where)
+        if scene['dimensions'] == 2:
+            np.testing.assert_array_equal(s.position[:, 2], 0.0, err_msg=where)
+            np.testing.assert_array_equal(s.velocity[:, 2], 0.0, err_msg=where)
+        assert world.kinetic_energy() <= energy * (1.0 + ENERGY_TOLERANCE), where
+        if isolated:
+            drift = np.max(np.abs(world.momentum() - momentum))
+            assert drift <= MOMENTUM_TOLERANCE * momentum_scale, where
+        assert max_penetration(world) <= 2.0 * fastest * dt * (1.0 + 1e-9) + 1e-15, where
+    event(f'collisions: {"none" if world.stats.collisions == 0 else "some"}')
