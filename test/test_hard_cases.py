@@ -387,6 +387,32 @@ def test_case09_particle_overlapping_walls_is_pushed_in_without_gaining_energy(p
     assert world.kinetic_energy() == 0.0
 
 
+@pytest.mark.parametrize('mass_ratio, restitution', [(10.0, 0.0), (10.0, 1.0), (1e6, 0.0)],
+                         ids=['10-plastic', '10-elastic', '1e6-plastic'])
+def test_case09_ball_pressed_against_a_wall_is_not_overrun(preset, mass_ratio, restitution):
+    """A heavy ball drives a light one into a wall (found by the fuzzer).
+
+    The light ball, held by the wall, cannot take its share of the push
+    apart; the heavy one must take all of it, or (as before the fix) it
+    sinks a step of travel deeper into the light ball every step and, at a
+    mass ratio of 1e6, passes right through it.
+    """
+    dt = 0.01
+    world = build(preset, [ball([-0.5, 0, 0], 0.1, mass_ratio, [-1.0, 0, 0]),
+                           ball([-0.9, 0, 0], 0.1, 1.0)], dt=dt,
+                  effects={'walls': WALLS, 'restitution': restitution})
+    energy = world.kinetic_energy()
+    fastest = 1.0
+    for _ in range(400):
+        fastest = max(fastest, float(np.abs(world.state.velocity).max()))
+        world.step()
+        assert max_penetration(world) <= fastest * dt
+        assert world.state.position[0, 0] > world.state.position[1, 0]
+        assert world.kinetic_energy() <= energy * (1.0 + 1e-14)
+        energy = world.kinetic_energy()
+    assert_finite(world)
+
+
 # 11. Long run -----------------------------------------------------------------------------
 
 LONG_RUN_DRIFT_BOUND = 1e-9     # relative kinetic energy drift over the whole run
