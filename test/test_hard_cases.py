@@ -234,7 +234,9 @@ def test_case06_dense_cluster_of_1000_resolves_without_explosion(preset, deep_pr
     # The solve is not allowed to kill the motion either (measured: loses < 1 %).
     assert world.kinetic_energy() >= 0.9 * energy0
     if deep_profile:
-        assert max_penetration(world) <= 1e-3 * radius
+        # Dispersed into a gas: overlaps are down to one step of closing travel.
+        fastest = float(np.max(np.linalg.norm(world.state.velocity, axis=1)))
+        assert max_penetration(world) <= 2.0 * fastest * world.dt
     else:
         assert max_penetration(world) < penetration0
 
