@@ -99,7 +99,8 @@ def random_set(seed: int, count: int, dimensions: int, static_share: float,
 
 
 @settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), count=st.integers(2, 40), dimensions=st.sampled_from([2, 3]),
+@given(seed=st.integers(0, 2**32 - 1), count=st.integers(2, 40),
+       dimensions=st.sampled_from([2, 3]),
        mass_decades=st.floats(0.0, 3.0))
 def test_random_set_conserves_momentum_and_energy(seed, count, dimensions, mass_decades):
     world = world_of(random_set(seed, count, dimensions, 0.0, mass_decades), dimensions)
@@ -115,7 +116,8 @@ def test_random_set_conserves_momentum_and_energy(seed, count, dimensions, mass_
 
 
 @settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), count=st.integers(2, 40), dimensions=st.sampled_from([2, 3]),
+@given(seed=st.integers(0, 2**32 - 1), count=st.integers(2, 40),
+       dimensions=st.sampled_from([2, 3]),
        restitution=st.sampled_from([1.0, 0.5]))
 def test_static_bodies_never_move_and_take_no_energy(seed, count, dimensions, restitution):
     world = world_of(random_set(seed, count, dimensions, 0.3, 1.0), dimensions, restitution)
