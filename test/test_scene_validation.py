@@ -6,10 +6,13 @@ a rejected file or request leaves nothing behind (nothing half-loaded).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-from collision_node import SceneError, World, load_scene, parse_scene, parse_spawn
+from collision_node import (SceneError, World, load_scene, parse_scene, parse_scene_text,
+                            parse_spawn)
 
 P = '{position: [0, 0, 0], radius: 0.5, mass: 1}'   # a valid 3-D particle
 
@@ -224,3 +227,12 @@ def test_bad_spawn_leaves_the_world_untouched(world_from):
     new_ids = world.spawn_text(f'[{{position: [3, 0, 0], radius: 0.5, mass: 1}}, {P}]')
     np.testing.assert_array_equal(new_ids, [1, 2])
     np.testing.assert_array_equal(world.state.ids, [0, 1, 2])
+
+
+def test_readme_scene_example_is_a_valid_scene():
+    readme = (Path(__file__).resolve().parent.parent / 'README.md').read_text()
+    example = readme.split('## Scene files')[1].split('```yaml')[1].split('```')[0]
+    scene = parse_scene_text(example, 'README.md')
+    assert scene.name == 'oblique_pair' and scene.dimensions == 2
+    assert len(scene.initial) == 3 + 100
+    assert scene.initial.inv_mass[2] == 0.0 and scene.effects.walls is not None
