@@ -105,4 +105,8 @@ def run(args: argparse.Namespace) -> int:
               f'| {growth} | {row["cpu_ns_per_particle_step"]:.0f} '
               f'| {row["collisions_per_step"]:.1f} | {row["energy_drift"]:.1e} |')
         previous = row
+    if len(rows) > 2:
+        print()
+        print(f'Growth exponent from N = {rows[0]["count"]:,} to {rows[-1]["count"]:,}: '
+              f'{growth_exponent(rows[0], rows[-1]):.3f}')
     return 0
