@@ -137,7 +137,13 @@ def _sorted_unique_pairs(parts_i: list, parts_j: list, n: int,
 
 
 class BroadphaseStage(Stage):
-    """Find candidate pairs: a Verlet list over k-d tree searches."""
+    """Find candidate pairs: a Verlet list over k-d tree searches.
+
+    The list is tied to the state's ``radius`` array object and particle
+    count: spawning (a new, longer state) or assigning a new radius array
+    starts a fresh search. Radii changed in place would not be seen; no
+    stage does that. Positions may change in any way between steps.
+    """
 
     name = 'broadphase'
 
