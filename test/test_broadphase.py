@@ -7,6 +7,7 @@ import pytest
 
 from collision_node import World, parse_scene
 from collision_node.pipeline import Stage, StepContext
+from collision_node.stages import broadphase as broadphase_module
 from collision_node.stages.broadphase import BroadphaseStage, candidate_pairs
 
 
@@ -39,8 +40,10 @@ class CheckCandidates(Stage):
         self.overlaps_seen += len(overlaps)
 
 
-@pytest.mark.parametrize('seed', [1, 2])
-def test_verlet_list_with_fast_movers_misses_no_contact(seed):
+@pytest.mark.parametrize('seed, all_pairs_up_to', [(1, 48), (2, 0)])
+def test_verlet_list_with_fast_movers_misses_no_contact(monkeypatch, seed, all_pairs_up_to):
+    # all_pairs_up_to = 0 makes movers meet each other through a search, not all pairs.
+    monkeypatch.setattr(broadphase_module, 'ALL_PAIRS_UP_TO', all_pairs_up_to)
     rng = np.random.default_rng(seed)
     count = 300
     # A crowded box; a few particles 20x faster than the rest (movers), a few

@@ -229,10 +229,14 @@ class BroadphaseStage(Stage):
             # Movers against the (few) large particles: all pairs.
             parts_i.append(np.repeat(movers, search.large.size))
             parts_j.append(np.tile(search.large, movers.size))
-        # Movers against movers, at their current positions.
-        between = search_pairs(position[movers], radius[movers])
-        parts_i.append(movers[between.i])
-        parts_j.append(movers[between.j])
+        # Movers against movers, at their current positions (all pairs if few).
+        if movers.size <= ALL_PAIRS_UP_TO:
+            between_i, between_j = np.triu_indices(movers.size, k=1)
+        else:
+            between = search_pairs(position[movers], radius[movers])
+            between_i, between_j = between.i, between.j
+        parts_i.append(movers[between_i])
+        parts_j.append(movers[between_j])
         extra_i, extra_j = _sorted_unique_pairs(parts_i, parts_j, n)
         extra = extra_i * n + extra_j
         keys = self._keys
