@@ -8,6 +8,7 @@ source, the particle index and the field.
 
 from __future__ import annotations
 
+import math
 import re
 import sys
 from dataclasses import dataclass
@@ -21,7 +22,8 @@ from .effects import Effects, parse_effects
 from .generate import generate_state, parse_generate
 from .particles import PARTICLE_KEYS, build_state, parse_particle
 from .state import ParticleState
-from .validation import SceneError, fail, number, reject_unknown_keys, require_mapping
+from .validation import (OverflowedNumber, SceneError, fail, number, reject_unknown_keys,
+                         require_mapping)
 
 SCENE_KEYS = ('name', 'dimensions', 'dt', 'duration', 'accuracy', 'effects', 'particles',
               'generate')
@@ -43,6 +45,17 @@ SceneLoader.add_implicit_resolver(
     'tag:yaml.org,2002:float',
     re.compile(r'^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$'),
     list('-+0123456789.'))
+
+
+def _construct_float(loader: SceneLoader, node: yaml.ScalarNode) -> float:
+    """Read a float; a numeral that overflows to inf is not ``.inf``: mark it."""
+    value = loader.construct_yaml_float(node)
+    if math.isinf(value) and 'inf' not in node.value.lower():
+        return OverflowedNumber(node.value)
+    return value
+
+
+SceneLoader.add_constructor('tag:yaml.org,2002:float', _construct_float)
 
 
 def load_yaml(text: str):

@@ -44,13 +44,33 @@ def reject_unknown_keys(data: Mapping, allowed: Iterable[str], where: str, *,
                  f'unknown key (allowed: {", ".join(allowed)})')
 
 
+class OverflowedNumber(float):
+    """A numeral too large for a 64-bit float, such as ``1e999``.
+
+    It reads as inf but, unlike ``.inf``, was never meant as infinity (a
+    mass of 1e999 would silently become a static particle): rejected.
+    """
+
+    def __new__(cls, text: str) -> 'OverflowedNumber':
+        """Keep the numeral's text for the error message."""
+        negative = text.strip().startswith('-')
+        number = super().__new__(cls, -math.inf if negative else math.inf)
+        number.text = text
+        return number
+
+
 def number(value: Any, where: str, *, minimum: Optional[float] = None,
            maximum: Optional[float] = None, exclusive_minimum: bool = False,
            allow_inf: bool = False) -> float:
     """Return ``value`` as a float after checking type, finiteness and range."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         fail(where, f'expected a number, got {value!r}')
-    value = float(value)
+    if isinstance(value, OverflowedNumber):
+        fail(where, f'{value.text} overflows a 64-bit float')
+    try:
+        value = float(value)
+    except OverflowError:
+        fail(where, f'an integer of {len(str(abs(value)))} digits overflows a 64-bit float')
     if math.isnan(value):
         fail(where, 'must not be NaN')
     if math.isinf(value) and not (allow_inf and value > 0):

@@ -122,7 +122,7 @@ def test_case15_bad_spawn_rejected_without_state_change(preset, field, value, wo
     assert world.spawn_text(yaml.safe_dump(GOOD[:1])).tolist() == [2]
 
 
-@pytest.mark.parametrize('token', ['NaN', 'Infinity', '-Infinity', '1e999'])
+@pytest.mark.parametrize('token', ['NaN', 'Infinity', '-Infinity', '1e999', '-1e999'])
 def test_case15_non_finite_json_spawn_rejected(token):
     """JSON writers spell non-finite numbers NaN / Infinity; they never get through."""
     world = World(parse_scene({'particles': GOOD}, 'api'))
@@ -202,3 +202,43 @@ def test_case15_bad_generate_spawn_rejected_without_state_change():
         world.spawn_text(yaml.safe_dump(request), source='spawn')
     assert_one_line(caught.value, 'spawn: generate[0].speed', 'NaN')
     assert_unchanged(world, before)
+
+
+# Numerals that do not fit a 64-bit float, as text (a Python float cannot hold them).
+OVERFLOWING = [('mass', '1e999', '1e999 overflows'),
+               ('mass', '1' + '0' * 400, '401 digits overflows'),
+               ('velocity', '[-2.5e999, 0, 0]', '-2.5e999 overflows'),
+               ('position', '[0, 1e400, 0]', '1e400 overflows'),
+               ('radius', '9' * 320, '320 digits overflows')]
+
+
+@pytest.mark.parametrize('field, literal, words', OVERFLOWING,
+                         ids=[f'{f}={t[:12]}' for f, t, _ in OVERFLOWING])
+def test_case15_overflowing_numeral_rejected_everywhere(tmp_path, field, literal, words):
+    """1e999 reads as inf, and would have made a static particle; 10**400 crashed."""
+    values = {'position': '[0, 3, 0]', 'velocity': '[0, -1, 0]', 'radius': '0.5', 'mass': '1'}
+    values[field] = literal
+    bad = '{' + ', '.join(f'"{k}": {v}' for k, v in values.items()) + '}'
+    good = ', '.join(json.dumps(p) for p in GOOD)
+    text = f'[{good}, {bad}]'
+    path = tmp_path / 'overflow.yaml'
+    path.write_text(f'particles: {text}\n')
+    with pytest.raises(SceneError) as caught:
+        load_scene(path)
+    assert_one_line(caught.value, f'{path}: particles[2].{field}', words)
+    world = World(parse_scene({'particles': GOOD}, 'api'))
+    before = snapshot(world)
+    with pytest.raises(SceneError) as caught:
+        world.spawn_text(text, source='spawn')
+    assert_one_line(caught.value, f'spawn: particles[2].{field}', words)
+    assert_unchanged(world, before)
+    # .inf is still how a scene says "static".
+    world.spawn_text('{"position": [0, 9, 0], "radius": 0.5, "mass": .inf}')
+    assert world.state.inv_mass[-1] == 0.0
+
+
+def test_case15_huge_integer_rejected_from_api():
+    scene = {'particles': [dict(GOOD[0]), dict(GOOD[1], mass=10 ** 400)]}
+    with pytest.raises(SceneError) as caught:
+        parse_scene(scene, 'api')
+    assert_one_line(caught.value, 'api: particles[1].mass', '401 digits overflows')
