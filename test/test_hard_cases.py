@@ -208,6 +208,28 @@ def test_case03_infinite_mass_reflects_exactly_and_never_moves(preset, direction
         np.testing.assert_array_equal(after, -v)   # head-on: m v becomes exactly -m v
 
 
+# 5. Newton's cradle -----------------------------------------------------------------------
+
+@pytest.mark.parametrize('count', [5, 100])
+def test_case05_newtons_cradle_momentum_leaves_from_the_far_end(preset, count):
+    """The first ball strikes a chain of touching balls; only the last one leaves."""
+    radius, spacing = 0.0625, 0.125                   # exact in binary: touching is exact
+    particles = [ball([-0.25, 0, 0], radius, 0.5, [1.0, 0, 0])]
+    particles += [ball([spacing * k, 0, 0], radius, 0.5) for k in range(count - 1)]
+    world = build(preset, particles, dt=0.001)
+    world.step(300 + count)
+    v = world.state.velocity
+    np.testing.assert_array_equal(v[-1], [1.0, 0, 0])
+    np.testing.assert_array_equal(v[:-1], 0.0)
+    assert world.stats.collisions == count - 1
+    assert world.kinetic_energy() == 0.25
+    np.testing.assert_array_equal(world.momentum(), [0.5, 0, 0])
+    # The chain stays a chain: in order, touching to rounding, never overlapping.
+    gaps = np.diff(world.state.position[:, 0])
+    assert np.all(gaps >= spacing - 1e-12)
+    assert gaps[-1] > 0.25                             # the last ball has left
+
+
 # 6. Dense cluster -------------------------------------------------------------------------
 
 CLUSTER_ENERGY_BOUND = 1.0 + 1e-12   # final KE <= this times the initial KE
@@ -413,6 +435,36 @@ def test_case09_ball_pressed_against_a_wall_is_not_overrun(preset, mass_ratio, r
         assert world.kinetic_energy() <= energy * (1.0 + 1e-14)
         energy = world.kinetic_energy()
     assert_finite(world)
+
+
+# 10. Inelastic collapse ------------------------------------------------------------------
+
+@pytest.mark.parametrize('wall_restitution', [1.0, 0.1])
+def test_case10_inelastic_collapse_terminates_and_comes_to_rest(preset, wall_restitution):
+    """Three balls, e = 0.1, in a 1-D gap only 0.1 m longer than they are.
+
+    An event-driven solver meets infinitely many impacts in finite time
+    here; every step must still end, and the balls must come to rest as a
+    touching chain against a wall.
+    """
+    world = build(preset, [ball([-0.2, 0], 0.1, 1.0, [1.0, 0]), ball([0.0, 0], 0.1, 1.0),
+                           ball([0.2, 0], 0.1, 1.0, [-0.7, 0])],
+                  dimensions=2, dt=0.001,
+                  effects={'restitution': 0.1,
+                           'walls': {'min': [-0.35, -1], 'max': [0.35, 1],
+                                     'restitution': wall_restitution}})
+    energy0 = energy = world.kinetic_energy()
+    for _ in range(1000):
+        world.step()
+        assert world.kinetic_energy() <= energy * (1.0 + 1e-14)
+        energy = world.kinetic_energy()
+    assert_finite(world)
+    assert energy <= 1e-20 * energy0
+    assert world.stats.collisions >= 50                  # it did collapse, many impacts
+    x = world.state.position[:, 0]
+    np.testing.assert_allclose(np.diff(x), [0.2, 0.2], atol=1e-9)
+    assert min(x[0] + 0.25, 0.25 - x[2]) <= 1e-9          # resting against a wall
+    np.testing.assert_array_equal(world.state.position[:, 1], 0.0)
 
 
 # 11. Long run -----------------------------------------------------------------------------
