@@ -516,9 +516,8 @@ def test_case09_ball_pressed_against_a_static_ball_stays_finite_and_loses_energy
 
 # 10. Inelastic collapse ------------------------------------------------------------------
 
-@pytest.mark.parametrize('wall_restitution', [1.0, 0.1])
-def test_case10_inelastic_collapse_terminates_and_comes_to_rest(preset, wall_restitution):
-    """Three balls, e = 0.1, in a 1-D gap only 0.1 m longer than they are.
+def test_case10_inelastic_collapse_terminates_and_comes_to_rest(preset):
+    """Three balls, e = 0.1 (walls too), in a 1-D gap only 0.1 m longer than they are.
 
     An event-driven solver meets infinitely many impacts in finite time
     here; every step must still end, and the balls must come to rest as a
@@ -529,9 +528,9 @@ def test_case10_inelastic_collapse_terminates_and_comes_to_rest(preset, wall_res
                   dimensions=2, dt=0.002,
                   effects={'restitution': 0.1,
                            'walls': {'min': [-0.35, -1], 'max': [0.35, 1],
-                                     'restitution': wall_restitution}})
+                                     'restitution': 0.1}})
     energy0 = energy = world.kinetic_energy()
-    for _ in range(500):
+    for _ in range(400):
         world.step()
         assert world.kinetic_energy() <= energy * (1.0 + 1e-14)
         energy = world.kinetic_energy()
