@@ -39,3 +39,29 @@ def apply_normal_impulses(velocity: np.ndarray, inv_mass: np.ndarray, i: np.ndar
     np.add.at(velocity, i, (magnitude * w_i)[:, None] * normal)
     np.add.at(velocity, j, -(magnitude * w_j)[:, None] * normal)
     return approaching
+
+
+def apply_normal_impulses_dissipative(velocity: np.ndarray, inv_mass: np.ndarray,
+                                      i: np.ndarray, j: np.ndarray, normal: np.ndarray,
+                                      restitution, threshold: float
+                                      ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Like :func:`apply_normal_impulses` for e < 1 and a restitution threshold.
+
+    A pair closing slower than ``threshold`` (m/s) gets e = 0: it stops
+    approaching and does not bounce, which is what keeps resting contact
+    under gravity still. Returns (mask of pairs hit, impulse magnitudes,
+    kinetic energy removed in J). The energy is exact per pair,
+    j |vn| (1 - e) / 2, since pairs in one call share no dynamic particle.
+    """
+    vn = closing_speed(velocity, i, j, normal)
+    approaching = vn < 0.0
+    if not np.any(approaching):
+        return approaching, np.zeros_like(vn), 0.0
+    if threshold > 0.0:
+        restitution = np.where(-vn < threshold, 0.0, restitution)
+    w_i, w_j = inv_mass[i], inv_mass[j]
+    magnitude = np.where(approaching, -(1.0 + restitution) * vn / (w_i + w_j), 0.0)
+    np.add.at(velocity, i, (magnitude * w_i)[:, None] * normal)
+    np.add.at(velocity, j, -(magnitude * w_j)[:, None] * normal)
+    removed = float(np.sum(magnitude * -vn * (1.0 - restitution))) * 0.5
+    return approaching, magnitude, removed

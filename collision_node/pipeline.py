@@ -106,17 +106,30 @@ class Pipeline:
 def build_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
     """Assemble the stages a scene's effects and accuracy settings call for."""
     from .stages.broadphase import BroadphaseStage
+    from .stages.drag import DragStage
     from .stages.drift import DriftStage
+    from .stages.gravity import GravityStage
     from .stages.narrowphase import NarrowphaseStage
     from .stages.separation import SeparationStage
     from .stages.sequential_impulses import SequentialImpulseStage
+    from .stages.spin import SpinStage
     from .stages.walls import WallStage
 
-    # Gravity (effects issue) is parsed but its stage is still to come.
-    stages: list[Stage] = [DriftStage(), BroadphaseStage(), NarrowphaseStage(),
-                           SequentialImpulseStage(effects.particle_restitution,
-                                                  accuracy.iterations),
-                           SeparationStage()]
+    # Motion: free drift (the lecture), plus gravity's exact completion, or
+    # the closed-form drag step (which includes gravity when declared).
+    stages: list[Stage]
+    if effects.drag is not None:
+        stages = [DragStage(effects.drag, effects.gravity)]
+    else:
+        stages = [DriftStage()]
+        if effects.gravity is not None:
+            stages.append(GravityStage(effects.gravity))
+    if effects.spin:
+        stages.append(SpinStage())
+    stages += [BroadphaseStage(), NarrowphaseStage(),
+               SequentialImpulseStage(effects.particle_restitution, accuracy.iterations,
+                                      friction=effects.friction),
+               SeparationStage()]
     if effects.walls is not None:
-        stages.append(WallStage(effects.walls))
+        stages.append(WallStage(effects.walls, friction=effects.friction))
     return Pipeline(stages)

@@ -7,12 +7,17 @@ cannot overshoot). Velocities are not touched, so no kinetic energy is
 added. Baumgarte-style correction, which feeds the overlap back into the
 velocity, was rejected: it is how an elastic gas gains energy without
 bound in a well-known engine.
+
+Under gravity, moving a particle changes its potential energy; that
+change is booked (with its sign: a push upwards adds energy, booked as a
+negative loss) as 'separation', so the energy balance still closes.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from ..energy import potential
 from ..pipeline import Stage, StepContext
 
 
@@ -43,7 +48,15 @@ class SeparationStage(Stage):
         c = ctx.contacts
         if c is None or len(c) == 0:
             return
+        gravity = ctx.effects.gravity
+        if gravity is None:
+            separate(ctx.state.position, ctx.state.inv_mass, c.i, c.j, c.normal,
+                     c.penetration)
+            return
+        touched = np.unique(np.concatenate([c.i, c.j]))
+        before = potential(ctx.state, gravity, touched)
         separate(ctx.state.position, ctx.state.inv_mass, c.i, c.j, c.normal, c.penetration)
+        ctx.stats.add_dissipated('separation', before - potential(ctx.state, gravity, touched))
 
     def describe(self) -> str:
         """Say what the stage does."""
