@@ -71,3 +71,17 @@ def apply_pair_friction(velocity: np.ndarray, angular: np.ndarray, inv_mass: np.
     # Side j feels -J at r_j = +radius_j N: the same sign of spin change.
     np.add.at(angular, j, spin_change(w_j, radius[j], normal, impulse))
     return float(removed.sum())
+
+
+def apply_wall_friction(velocity: np.ndarray, angular: np.ndarray, inv_mass: np.ndarray,
+                        radius: np.ndarray, index: np.ndarray, normal: np.ndarray,
+                        normal_impulse: np.ndarray, mu, planar: bool) -> float:
+    """Apply friction against a static wall (distinct ``index``); return energy removed, J."""
+    w, r = inv_mass[index], radius[index]
+    still = np.zeros_like(normal)
+    u_t = contact_slip(velocity[index], still, r[:, None] * angular[index], still, normal,
+                       planar)
+    impulse, removed = friction_impulse(u_t, w, normal_impulse, mu)
+    velocity[index] += w[:, None] * impulse
+    angular[index] += spin_change(w, r, normal, impulse)
+    return float(removed.sum())

@@ -43,7 +43,7 @@ def apply_normal_impulses(velocity: np.ndarray, inv_mass: np.ndarray, i: np.ndar
 
 def apply_normal_impulses_dissipative(velocity: np.ndarray, inv_mass: np.ndarray,
                                       i: np.ndarray, j: np.ndarray, normal: np.ndarray,
-                                      restitution, threshold: float
+                                      restitution, threshold: float, tolerance: float = 0.0
                                       ) -> tuple[np.ndarray, np.ndarray, float]:
     """Like :func:`apply_normal_impulses` for e < 1 and a restitution threshold.
 
@@ -52,9 +52,11 @@ def apply_normal_impulses_dissipative(velocity: np.ndarray, inv_mass: np.ndarray
     under gravity still. Returns (mask of pairs hit, impulse magnitudes,
     kinetic energy removed in J). The energy is exact per pair,
     j |vn| (1 - e) / 2, since pairs in one call share no dynamic particle.
+    Pairs closing slower than ``tolerance`` count as not approaching, so
+    repeated sweeps stop on rounding-level residues.
     """
     vn = closing_speed(velocity, i, j, normal)
-    approaching = vn < 0.0
+    approaching = vn < -tolerance
     if not np.any(approaching):
         return approaching, np.zeros_like(vn), 0.0
     if threshold > 0.0:

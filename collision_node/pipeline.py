@@ -126,10 +126,12 @@ def build_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
             stages.append(GravityStage(effects.gravity))
     if effects.spin:
         stages.append(SpinStage())
+    if effects.walls is not None:
+        # Impacts at their time in the step; resting wall contact is then
+        # solved together with the pairs, and separation projects back inside.
+        stages.append(WallStage(effects.walls, friction=effects.friction))
     stages += [BroadphaseStage(), NarrowphaseStage(),
                SequentialImpulseStage(effects.particle_restitution, accuracy.iterations,
-                                      friction=effects.friction),
-               SeparationStage()]
-    if effects.walls is not None:
-        stages.append(WallStage(effects.walls, friction=effects.friction))
+                                      friction=effects.friction, walls=effects.walls),
+               SeparationStage(walls=effects.walls)]
     return Pipeline(stages)

@@ -8,6 +8,9 @@ added. Baumgarte-style correction, which feeds the overlap back into the
 velocity, was rejected: it is how an elastic gas gains energy without
 bound in a well-known engine.
 
+With walls, particles pushed past a wall plane are then placed back on
+it (again positions only).
+
 Under gravity, moving a particle changes its potential energy; that
 change is booked (with its sign: a push upwards adds energy, booked as a
 negative loss) as 'separation', so the energy balance still closes.
@@ -17,6 +20,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from typing import Optional
+
+from ..effects import Walls
 from ..energy import potential
 from ..pipeline import Stage, StepContext
 
@@ -43,21 +49,40 @@ class SeparationStage(Stage):
 
     name = 'separation'
 
+    def __init__(self, walls: Optional[Walls] = None) -> None:
+        """Keep the wall planes to project particles back inside (None: no walls)."""
+        self.walls = walls
+
     def run(self, ctx: StepContext) -> None:
         """Move positions in place."""
         c = ctx.contacts
-        if c is None or len(c) == 0:
+        has_pairs = c is not None and len(c) > 0
+        if not has_pairs and self.walls is None:
             return
         gravity = ctx.effects.gravity
         if gravity is None:
-            separate(ctx.state.position, ctx.state.inv_mass, c.i, c.j, c.normal,
-                     c.penetration)
+            self._project(ctx, has_pairs)
             return
-        touched = np.unique(np.concatenate([c.i, c.j]))
-        before = potential(ctx.state, gravity, touched)
-        separate(ctx.state.position, ctx.state.inv_mass, c.i, c.j, c.normal, c.penetration)
-        ctx.stats.add_dissipated('separation', before - potential(ctx.state, gravity, touched))
+        before = potential(ctx.state, gravity)
+        self._project(ctx, has_pairs)
+        ctx.stats.add_dissipated('separation', before - potential(ctx.state, gravity))
+
+    def _project(self, ctx: StepContext, has_pairs: bool) -> None:
+        """Separate overlapping pairs, then clamp particles inside the walls."""
+        s, c = ctx.state, ctx.contacts
+        if has_pairs:
+            separate(s.position, s.inv_mass, c.i, c.j, c.normal, c.penetration)
+        if self.walls is None:
+            return
+        dyn = s.dynamic
+        for axis, plane, inward in self.walls.planes(ctx.dimensions):
+            p = s.position[:, axis]
+            inside = dyn & (inward * (p - plane) < s.radius)
+            p[inside] = plane + inward * s.radius[inside]
 
     def describe(self) -> str:
         """Say what the stage does."""
-        return 'position projection along N shared by inverse mass (velocities untouched)'
+        text = 'position projection along N shared by inverse mass (velocities untouched)'
+        if self.walls is not None:
+            text += ', then back onto wall planes'
+        return text

@@ -21,11 +21,12 @@ from typing import Optional
 import numpy as np
 
 from ..coloring import color_pairs
-from ..effects import combine
+from ..effects import Walls, combine
 from ..energy import kinetic_linear
-from ..friction import apply_pair_friction
-from ..impulse import apply_normal_impulses, apply_normal_impulses_dissipative
-from ..pipeline import Stage, StepContext
+from ..friction import apply_pair_friction, apply_wall_friction
+from ..impulse import (apply_normal_impulses, apply_normal_impulses_dissipative,
+                       closing_speed)
+from ..pipeline import Contacts, Stage, StepContext
 
 # Past this many colours (only in very dense clusters, e.g. a thousand
 # particles spawned on one point) the remaining pairs share their impulses
@@ -35,14 +36,65 @@ from ..pipeline import Stage, StepContext
 MAX_BATCHES = 256
 
 
+# Closing speeds below this fraction of the restitution threshold count as
+# resolved, so sweeps over resting contact stop at rounding-level residues.
+RESIDUAL_FRACTION = 1.0e-3
+# A particle within this fraction of (radius + |plane|) of a wall plane
+# touches it (the walls stage places resting particles on the plane to
+# rounding).
+WALL_SLOP = 1.0e-9
+
+
+class WallContacts:
+    """Particles touching one wall plane, solved as one batch in each sweep."""
+
+    def __init__(self, axis: int, inward: float, index: np.ndarray, restitution,
+                 friction) -> None:
+        """Keep the plane's axis, inward sign, touching particles and coefficients."""
+        self.axis, self.inward, self.index = axis, inward, index
+        self.restitution, self.friction = restitution, friction
+
+    def solve(self, state, threshold: float, tolerance: float, planar: bool,
+              lost: dict) -> Optional[np.ndarray]:
+        """Apply wall impulses (and friction) to approaching particles; book losses.
+
+        Returns the mask of particles hit, or None when none approached.
+        """
+        index = self.index
+        u = self.inward * state.velocity[index, self.axis]
+        approaching = u < -tolerance
+        if not approaching.any():
+            return None
+        e = self.restitution
+        if threshold > 0.0:
+            e = np.where(-u < threshold, 0.0, e)
+        change = np.where(approaching, -(1.0 + e) * u, 0.0)
+        state.velocity[index, self.axis] += self.inward * change
+        w = state.inv_mass[index]
+        impulse = change / w
+        lost['walls'] += float(np.sum(impulse * -u * (1.0 - e))) * 0.5
+        if self.friction is not None:
+            hit = index[approaching]
+            normal = np.zeros((hit.size, 3))
+            normal[:, self.axis] = self.inward
+            mu = self.friction[approaching] if np.ndim(self.friction) else self.friction
+            lost['friction'] += apply_wall_friction(
+                state.velocity, state.angular_velocity, state.inv_mass, state.radius,
+                hit, normal, impulse[approaching], mu, planar)
+        return approaching
+
+
 class SequentialImpulseStage(Stage):
     """Resolve approaching contacts with restitution, colour by colour."""
 
     name = 'contact_impulses'
 
     def __init__(self, restitution: float, iterations: int,
-                 friction: Optional[float] = None) -> None:
-        """Keep the particle-particle restitution, the sweep budget and friction mu.
+                 friction: Optional[float] = None, walls: Optional[Walls] = None) -> None:
+        """Keep the particle-particle restitution, the sweep budget, friction mu and walls.
+
+        With walls, particles touching a wall plane are solved together with
+        the pairs in every sweep, so a pile rests on its floor.
 
         The restitution threshold comes from the step's effects
         (``Effects.threshold(dt)``), since its default depends on dt.
@@ -50,14 +102,16 @@ class SequentialImpulseStage(Stage):
         self.restitution = restitution
         self.iterations = iterations
         self.friction = friction
+        self.walls = walls
 
     def run(self, ctx: StepContext) -> None:
         """Apply impulses in place and count the contacts that received one."""
         contacts = ctx.contacts
-        if contacts is None or len(contacts) == 0:
+        if self.walls is None and (contacts is None or len(contacts) == 0):
             return
         threshold = ctx.effects.threshold(ctx.dt)
-        if threshold > 0.0 or self.friction is not None or ctx.state.restitution is not None:
+        if threshold > 0.0 or self.friction is not None or self.walls is not None or \
+                ctx.state.restitution is not None:
             self._run_dissipative(ctx, threshold)
             return
         state = ctx.state
@@ -96,8 +150,9 @@ class SequentialImpulseStage(Stage):
                                      energy_before - self._energy(state, touched))
 
     def _run_dissipative(self, ctx: StepContext, threshold: float) -> None:
-        """Solve with per-pair restitution, the threshold and friction; book losses."""
-        state, contacts = ctx.state, ctx.contacts
+        """Solve with per-pair restitution, the threshold, friction and walls; book losses."""
+        state = ctx.state
+        contacts = ctx.contacts if ctx.contacts is not None else Contacts.empty()
         i, j, normal = contacts.i, contacts.j, contacts.normal
         own = state.restitution
         restitution = combine(None if own is None else own[i],
@@ -110,23 +165,26 @@ class SequentialImpulseStage(Stage):
                          None if own_mu is None else own_mu[j], self.friction)
         mu_per_pair = np.ndim(mu) > 0
         planar = ctx.dimensions == 2
+        tolerance = RESIDUAL_FRACTION * threshold
         batches, leftover = color_pairs(i, j, state.dynamic, MAX_BATCHES)
+        walls = self._wall_contacts(ctx)
         hit = np.zeros(len(contacts), dtype=bool)
-        lost_normal = lost_friction = 0.0
+        wall_hit = [np.zeros(len(w.index), dtype=bool) for w in walls]
+        lost = {'restitution': 0.0, 'walls': 0.0, 'friction': 0.0}
         for _ in range(self.iterations):
             applied = False
             for batch in batches:
                 bi, bj, bn = i[batch], j[batch], normal[batch]
                 e = restitution[batch] if per_pair else restitution
                 mask, magnitude, removed = apply_normal_impulses_dissipative(
-                    state.velocity, state.inv_mass, bi, bj, bn, e, threshold)
+                    state.velocity, state.inv_mass, bi, bj, bn, e, threshold, tolerance)
                 if not mask.any():
                     continue
                 hit[batch[mask]] = True
                 applied = True
-                lost_normal += removed
+                lost['restitution'] += removed
                 if mu is not None:
-                    lost_friction += apply_pair_friction(
+                    lost['friction'] += apply_pair_friction(
                         state.velocity, state.angular_velocity, state.inv_mass, state.radius,
                         bi[mask], bj[mask], bn[mask], magnitude[mask],
                         mu[batch][mask] if mu_per_pair else mu, planar)
@@ -140,13 +198,87 @@ class SequentialImpulseStage(Stage):
                 if mask.any():
                     hit[leftover[mask]] = True
                     applied = True
-                    lost_normal += before - kinetic_linear(state, touched)
+                    lost['restitution'] += before - kinetic_linear(state, touched)
+            # Each plane is one batch: a particle touches a plane once.
+            for wall, wall_mask in zip(walls, wall_hit):
+                mask = wall.solve(state, threshold, tolerance, planar, lost)
+                if mask is not None:
+                    wall_mask |= mask
+                    applied = True
             if not applied:
                 break
+        if ctx.effects.gravity is not None and threshold > 0.0 and len(contacts):
+            for wall in walls:
+                wall.solve(state, threshold, tolerance, planar, lost)
+            lost['restitution'] += self._shock_pass(state, i, j, normal, ctx.effects.gravity,
+                                                    threshold, tolerance)
         ctx.stats.collisions += int(hit.sum())
-        ctx.stats.add_dissipated('restitution', lost_normal)
-        if mu is not None:
-            ctx.stats.add_dissipated('friction', lost_friction)
+        ctx.stats.wall_collisions += int(sum(int(m.sum()) for m in wall_hit))
+        for effect, energy in lost.items():
+            if effect == 'restitution' or (effect == 'walls' and walls) or \
+                    (effect == 'friction' and mu is not None):
+                ctx.stats.add_dissipated(effect, energy)
+
+    def _wall_contacts(self, ctx: StepContext) -> list['WallContacts']:
+        """Return the particles touching each wall plane, one entry per plane."""
+        if self.walls is None:
+            return []
+        s = ctx.state
+        out = []
+        for axis, plane, inward in self.walls.planes(ctx.dimensions):
+            gap = inward * (s.position[:, axis] - plane) - s.radius
+            slop = WALL_SLOP * (s.radius + abs(plane))
+            index = np.flatnonzero(s.dynamic & (gap <= slop))
+            if index.size == 0:
+                continue
+            own = None if s.restitution is None else s.restitution[index]
+            e = combine(own, None, self.walls.restitution)
+            mu = None
+            if self.friction is not None:
+                own_mu = None if s.friction is None else s.friction[index]
+                mu = combine(own_mu, None, self.friction)
+            out.append(WallContacts(axis, inward, index, e, mu))
+        return out
+
+    @staticmethod
+    def _shock_pass(state, i: np.ndarray, j: np.ndarray, normal: np.ndarray,
+                    gravity: np.ndarray, threshold: float, tolerance: float) -> float:
+        """Stop resting contacts from the ground up; return the energy removed.
+
+        Shock propagation (Guendelman, Bridson and Fedkiw 2003): sweeps over a
+        pile converge slowly because each inelastic impulse pushes the lower
+        particle down again. One final pass, pairs ordered by the height of
+        their lower particle along -g, treats the lower particle as
+        immovable and stops the upper one's approach (e = 0). It acts only
+        on pairs still closing slower than the restitution threshold, i.e.
+        resting contact the sweeps left unfinished; real impacts were
+        solved by the sweeps.
+        """
+        height = -(state.position @ gravity)
+        i_lower = height[i] <= height[j]
+        order = np.argsort(np.where(i_lower, height[i], height[j]), kind='stable')
+        i, j, normal, i_lower = i[order], j[order], normal[order], i_lower[order]
+        w_i = np.where(i_lower, 0.0, state.inv_mass[i])
+        w_j = np.where(i_lower, state.inv_mass[j], 0.0)
+        upper = np.where(i_lower, j, i)
+        batches, leftover = color_pairs(i, j, state.dynamic, MAX_BATCHES)
+        if leftover.size:
+            batches.append(leftover)
+        removed = 0.0
+        for batch in batches:
+            bi, bj, bn = i[batch], j[batch], normal[batch]
+            vn = closing_speed(state.velocity, bi, bj, bn)
+            w_sum = w_i[batch] + w_j[batch]
+            resting = (vn < -tolerance) & (-vn < threshold) & (w_sum > 0.0)
+            if not resting.any():
+                continue
+            moved = np.unique(upper[batch][resting])
+            before = kinetic_linear(state, moved)
+            magnitude = np.where(resting, -vn / np.where(w_sum > 0.0, w_sum, 1.0), 0.0)
+            np.add.at(state.velocity, bi, (magnitude * w_i[batch])[:, None] * bn)
+            np.add.at(state.velocity, bj, -(magnitude * w_j[batch])[:, None] * bn)
+            removed += before - kinetic_linear(state, moved)
+        return removed
 
     @staticmethod
     def _leftover_scale(state, i: np.ndarray, j: np.ndarray, leftover: np.ndarray

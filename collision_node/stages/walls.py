@@ -32,7 +32,7 @@ import numpy as np
 
 from ..effects import Walls, combine
 from ..energy import mechanical
-from ..friction import contact_slip, friction_impulse, spin_change
+from ..friction import apply_wall_friction
 from ..pipeline import Stage, StepContext
 
 
@@ -119,14 +119,8 @@ class WallStage(Stage):
         normal[:, axis] = inward
         own = None if s.friction is None else s.friction[hit]
         mu = combine(own, None, self.friction)
-        w, r = s.inv_mass[hit], s.radius[hit]
-        u_t = contact_slip(s.velocity[hit], np.zeros_like(normal),
-                           r[:, None] * s.angular_velocity[hit], np.zeros_like(normal),
-                           normal, ctx.dimensions == 2)
-        impulse, removed = friction_impulse(u_t, w, normal_impulse, mu)
-        s.velocity[hit] += w[:, None] * impulse
-        s.angular_velocity[hit] += spin_change(w, r, normal, impulse)
-        return float(removed.sum())
+        return apply_wall_friction(s.velocity, s.angular_velocity, s.inv_mass, s.radius, hit,
+                                   normal, normal_impulse, mu, ctx.dimensions == 2)
 
     def describe(self) -> str:
         """Say what the stage does."""
