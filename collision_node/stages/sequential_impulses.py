@@ -39,6 +39,10 @@ MAX_BATCHES = 256
 # Closing speeds below this fraction of the restitution threshold count as
 # resolved, so sweeps over resting contact stop at rounding-level residues.
 RESIDUAL_FRACTION = 1.0e-3
+# Passes of shock propagation at most (a particle resting on two others
+# needs a few: stopping it against one support can make it approach the
+# other).
+SHOCK_PASSES = 8
 # A particle within this fraction of (radius + |plane|) of a wall plane
 # touches it (the walls stage places resting particles on the plane to
 # rounding).
@@ -210,8 +214,12 @@ class SequentialImpulseStage(Stage):
         if ctx.effects.gravity is not None and threshold > 0.0 and len(contacts):
             for wall in walls:
                 wall.solve(state, threshold, tolerance, planar, lost)
-            lost['restitution'] += self._shock_pass(state, i, j, normal, ctx.effects.gravity,
-                                                    threshold, tolerance)
+            for _ in range(SHOCK_PASSES):
+                removed = self._shock_pass(state, i, j, normal, ctx.effects.gravity,
+                                           threshold, tolerance)
+                if removed is None:
+                    break
+                lost['restitution'] += removed
         ctx.stats.collisions += int(hit.sum())
         ctx.stats.wall_collisions += int(sum(int(m.sum()) for m in wall_hit))
         for effect, energy in lost.items():
@@ -242,7 +250,8 @@ class SequentialImpulseStage(Stage):
 
     @staticmethod
     def _shock_pass(state, i: np.ndarray, j: np.ndarray, normal: np.ndarray,
-                    gravity: np.ndarray, threshold: float, tolerance: float) -> float:
+                    gravity: np.ndarray, threshold: float, tolerance: float
+                    ) -> Optional[float]:
         """Stop resting contacts from the ground up; return the energy removed.
 
         Shock propagation (Guendelman, Bridson and Fedkiw 2003): sweeps over a
@@ -252,7 +261,7 @@ class SequentialImpulseStage(Stage):
         immovable and stops the upper one's approach (e = 0). It acts only
         on pairs still closing slower than the restitution threshold, i.e.
         resting contact the sweeps left unfinished; real impacts were
-        solved by the sweeps.
+        solved by the sweeps. Returns None when no pair needed it.
         """
         height = -(state.position @ gravity)
         i_lower = height[i] <= height[j]
@@ -264,7 +273,7 @@ class SequentialImpulseStage(Stage):
         batches, leftover = color_pairs(i, j, state.dynamic, MAX_BATCHES)
         if leftover.size:
             batches.append(leftover)
-        removed = 0.0
+        removed = None
         for batch in batches:
             bi, bj, bn = i[batch], j[batch], normal[batch]
             vn = closing_speed(state.velocity, bi, bj, bn)
@@ -277,7 +286,7 @@ class SequentialImpulseStage(Stage):
             magnitude = np.where(resting, -vn / np.where(w_sum > 0.0, w_sum, 1.0), 0.0)
             np.add.at(state.velocity, bi, (magnitude * w_i[batch])[:, None] * bn)
             np.add.at(state.velocity, bj, -(magnitude * w_j[batch])[:, None] * bn)
-            removed += before - kinetic_linear(state, moved)
+            removed = (removed or 0.0) + before - kinetic_linear(state, moved)
         return removed
 
     @staticmethod

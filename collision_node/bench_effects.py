@@ -1,0 +1,91 @@
+"""Benchmark: cost of each effect alone and of all together, per step.
+
+    python -m collision_node.bench_effects [--count N] [--steps K] [--repeats R]
+
+Runs the same gas (default 10,000 particles, 3-D) under each effect
+configuration and prints the median wall time per step and its ratio to
+the gas without effects, as a Markdown table (the one in
+docs/performance.md). The 'none' rows are the lecture pipeline, built
+from a scene without ``effects`` and from ``effects: {}``: an undeclared
+effect is not in the pipeline, so both must cost the same within noise.
+A command, not a test: numbers depend on the machine and its load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from typing import Optional, Sequence
+
+from .scene import parse_scene
+from .world import World
+
+BOX = 30.0                                   # m, edge of the gas's cube
+CONFIGS: dict[str, Optional[dict]] = {
+    'none (no effects key)': None,
+    'none (effects: {})': {},
+    'gravity': {'gravity': [0.0, -9.81, 0.0]},
+    'walls': {'walls': {'min': [0.0, 0.0, 0.0], 'max': [BOX, BOX, BOX]}},
+    'restitution 0.8': {'restitution': 0.8},
+    'friction 0.3': {'friction': 0.3},
+    'drag': {'drag': {'linear': 0.1, 'quadratic': 0.05}},
+    'all': {'gravity': [0.0, -9.81, 0.0],
+            'walls': {'min': [0.0, 0.0, 0.0], 'max': [BOX, BOX, BOX], 'restitution': 0.9},
+            'restitution': 0.8, 'friction': 0.3,
+            'drag': {'linear': 0.1, 'quadratic': 0.05}},
+}
+
+
+def gas_scene(count: int, effects: Optional[dict]) -> dict:
+    """Return the benchmark gas: ``count`` particles of r = 0.1 m at 2 m/s in a cube."""
+    scene = {'name': 'bench_gas', 'dimensions': 3, 'dt': 0.005,
+             'generate': [{'kind': 'gas', 'count': count, 'radius': 0.1, 'mass': 1.0,
+                           'speed': 2.0, 'seed': 1,
+                           'region': {'min': [0.0, 0.0, 0.0], 'max': [BOX, BOX, BOX]}}]}
+    if effects is not None:
+        scene['effects'] = effects
+    return scene
+
+
+def time_per_step(count: int, effects: Optional[dict], steps: int, repeats: int) -> float:
+    """Return the median seconds per step over ``repeats`` runs of ``steps`` steps."""
+    samples = []
+    for _ in range(repeats):
+        world = World(parse_scene(gas_scene(count, effects), 'bench_effects'))
+        world.step(2)                        # warm-up: caches, first allocations
+        start = time.perf_counter()
+        world.step(steps)
+        samples.append((time.perf_counter() - start) / steps)
+    return statistics.median(samples)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Run the benchmark and print the table; return the exit code."""
+    parser = argparse.ArgumentParser(prog='bench_effects', description=__doc__.split('\n')[0])
+    parser.add_argument('--count', type=int, default=10_000, help='particles (default 10000)')
+    parser.add_argument('--steps', type=int, default=20, help='timed steps per run')
+    parser.add_argument('--repeats', type=int, default=5, help='runs per configuration')
+    args = parser.parse_args(argv)
+    load = os.getloadavg()
+    print(f'# {args.count} particles, {args.steps} steps x {args.repeats} runs per row, '
+          f'median; load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}, '
+          f'{os.cpu_count()} CPUs')
+    print('| effects | stages | ms per step | relative to none |')
+    print('|---|---|---|---|')
+    baseline = None
+    for label, effects in CONFIGS.items():
+        seconds = time_per_step(args.count, effects, args.steps, args.repeats)
+        if baseline is None:
+            baseline = seconds
+        world = World(parse_scene(gas_scene(2, effects), 'bench_effects'))
+        stages = ', '.join(world.pipeline.names)
+        print(f'| {label} | {stages} | {seconds * 1e3:.1f} | {seconds / baseline:.2f} |',
+              flush=True)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
