@@ -24,8 +24,7 @@ from ..coloring import color_pairs
 from ..effects import Walls, combine
 from ..energy import kinetic_linear
 from ..friction import apply_pair_friction, apply_wall_friction
-from ..impulse import (apply_normal_impulses, apply_normal_impulses_dissipative,
-                       closing_speed)
+from ..impulse import apply_normal_impulses, apply_velocity_targets, closing_speed
 from ..pipeline import Contacts, Stage, StepContext
 
 # Past this many colours (only in very dense clusters, e.g. a thousand
@@ -52,31 +51,30 @@ WALL_SLOP = 1.0e-9
 class WallContacts:
     """Particles touching one wall plane, solved as one batch in each sweep."""
 
-    def __init__(self, axis: int, inward: float, index: np.ndarray, restitution,
+    def __init__(self, axis: int, inward: float, index: np.ndarray, target,
                  friction) -> None:
-        """Keep the plane's axis, inward sign, touching particles and coefficients."""
+        """Keep the plane, touching particles, target separation speeds and mu."""
         self.axis, self.inward, self.index = axis, inward, index
-        self.restitution, self.friction = restitution, friction
+        self.target, self.friction = target, friction
 
-    def solve(self, state, threshold: float, tolerance: float, planar: bool,
-              lost: dict) -> Optional[np.ndarray]:
-        """Apply wall impulses (and friction) to approaching particles; book losses.
+    def solve(self, state, tolerance: float, planar: bool, lost: dict
+              ) -> Optional[np.ndarray]:
+        """Push particles below their target speed off the plane up to it; book losses.
 
-        Returns the mask of particles hit, or None when none approached.
+        The target is e times the approach speed before the solve (0 below
+        the restitution threshold), as for pairs. Returns the mask of
+        particles hit, or None when none was below its target.
         """
         index = self.index
         u = self.inward * state.velocity[index, self.axis]
-        approaching = u < -tolerance
+        approaching = u < self.target - tolerance
         if not approaching.any():
             return None
-        e = self.restitution
-        if threshold > 0.0:
-            e = np.where(-u < threshold, 0.0, e)
-        change = np.where(approaching, -(1.0 + e) * u, 0.0)
+        change = np.where(approaching, self.target - u, 0.0)
         state.velocity[index, self.axis] += self.inward * change
         w = state.inv_mass[index]
         impulse = change / w
-        lost['walls'] += float(np.sum(impulse * -u * (1.0 - e))) * 0.5
+        lost['walls'] -= 0.5 * float(np.sum(impulse * (u + self.target)))
         if self.friction is not None:
             hit = index[approaching]
             normal = np.zeros((hit.size, 3))
@@ -170,8 +168,15 @@ class SequentialImpulseStage(Stage):
         mu_per_pair = np.ndim(mu) > 0
         planar = ctx.dimensions == 2
         tolerance = RESIDUAL_FRACTION * threshold
+        # Restitution is decided once per step from the closing speed before
+        # the solve (as Box2D does): each pair's target separation speed is
+        # e |vn| (0 below the threshold), and sweeps push pairs up to their
+        # target. Re-applying (1 + e) to the current closing speed in every
+        # sweep would pump energy into a resting pile.
+        vn0 = closing_speed(state.velocity, i, j, normal)
+        target = np.where(-vn0 < threshold, 0.0, -restitution * np.minimum(vn0, 0.0))
         batches, leftover = color_pairs(i, j, state.dynamic, MAX_BATCHES)
-        walls = self._wall_contacts(ctx)
+        walls = self._wall_contacts(ctx, threshold)
         hit = np.zeros(len(contacts), dtype=bool)
         wall_hit = [np.zeros(len(w.index), dtype=bool) for w in walls]
         lost = {'restitution': 0.0, 'walls': 0.0, 'friction': 0.0}
@@ -179,9 +184,8 @@ class SequentialImpulseStage(Stage):
             applied = False
             for batch in batches:
                 bi, bj, bn = i[batch], j[batch], normal[batch]
-                e = restitution[batch] if per_pair else restitution
-                mask, magnitude, removed = apply_normal_impulses_dissipative(
-                    state.velocity, state.inv_mass, bi, bj, bn, e, threshold, tolerance)
+                mask, magnitude, removed = apply_velocity_targets(
+                    state.velocity, state.inv_mass, bi, bj, bn, target[batch], tolerance)
                 if not mask.any():
                     continue
                 hit[batch[mask]] = True
@@ -205,18 +209,19 @@ class SequentialImpulseStage(Stage):
                     lost['restitution'] += before - kinetic_linear(state, touched)
             # Each plane is one batch: a particle touches a plane once.
             for wall, wall_mask in zip(walls, wall_hit):
-                mask = wall.solve(state, threshold, tolerance, planar, lost)
+                mask = wall.solve(state, tolerance, planar, lost)
                 if mask is not None:
                     wall_mask |= mask
                     applied = True
             if not applied:
                 break
         if ctx.effects.gravity is not None and threshold > 0.0 and len(contacts):
-            for wall in walls:
-                wall.solve(state, threshold, tolerance, planar, lost)
             for _ in range(SHOCK_PASSES):
                 removed = self._shock_pass(state, i, j, normal, ctx.effects.gravity,
                                            threshold, tolerance)
+                # Walls are the bottom of every pile: solve them after each pass.
+                for wall in walls:
+                    wall.solve(state, tolerance, planar, lost)
                 if removed is None:
                     break
                 lost['restitution'] += removed
@@ -227,7 +232,7 @@ class SequentialImpulseStage(Stage):
                     (effect == 'friction' and mu is not None):
                 ctx.stats.add_dissipated(effect, energy)
 
-    def _wall_contacts(self, ctx: StepContext) -> list['WallContacts']:
+    def _wall_contacts(self, ctx: StepContext, threshold: float) -> list['WallContacts']:
         """Return the particles touching each wall plane, one entry per plane."""
         if self.walls is None:
             return []
@@ -241,11 +246,13 @@ class SequentialImpulseStage(Stage):
                 continue
             own = None if s.restitution is None else s.restitution[index]
             e = combine(own, None, self.walls.restitution)
+            u0 = inward * s.velocity[index, axis]
+            target = np.where(-u0 < threshold, 0.0, -e * np.minimum(u0, 0.0))
             mu = None
             if self.friction is not None:
                 own_mu = None if s.friction is None else s.friction[index]
                 mu = combine(own_mu, None, self.friction)
-            out.append(WallContacts(axis, inward, index, e, mu))
+            out.append(WallContacts(axis, inward, index, target, mu))
         return out
 
     @staticmethod
