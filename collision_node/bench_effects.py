@@ -50,16 +50,13 @@ def gas_scene(count: int, effects: Optional[dict]) -> dict:
     return scene
 
 
-def time_per_step(count: int, effects: Optional[dict], steps: int, repeats: int) -> float:
-    """Return the median seconds per step over ``repeats`` runs of ``steps`` steps."""
-    samples = []
-    for _ in range(repeats):
-        world = World(parse_scene(gas_scene(count, effects), 'bench_effects'))
-        world.step(2)                        # warm-up: caches, first allocations
-        start = time.perf_counter()
-        world.step(steps)
-        samples.append((time.perf_counter() - start) / steps)
-    return statistics.median(samples)
+def time_per_step(count: int, effects: Optional[dict], steps: int) -> float:
+    """Return the seconds per step of one run of ``steps`` steps after a warm-up."""
+    world = World(parse_scene(gas_scene(count, effects), 'bench_effects'))
+    world.step(2)                            # warm-up: caches, first allocations
+    start = time.perf_counter()
+    world.step(steps)
+    return (time.perf_counter() - start) / steps
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -75,15 +72,18 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
           f'{os.cpu_count()} CPUs')
     print('| effects | stages | ms per step | relative to none |')
     print('|---|---|---|---|')
-    baseline = None
+    # Repeats go round all configurations in turn, so a change of machine
+    # load during the run spreads over every row instead of one.
+    samples: dict[str, list[float]] = {label: [] for label in CONFIGS}
+    for _ in range(args.repeats):
+        for label, effects in CONFIGS.items():
+            samples[label].append(time_per_step(args.count, effects, args.steps))
+    baseline = statistics.median(samples['none (no effects key)'])
     for label, effects in CONFIGS.items():
-        seconds = time_per_step(args.count, effects, args.steps, args.repeats)
-        if baseline is None:
-            baseline = seconds
+        seconds = statistics.median(samples[label])
         world = World(parse_scene(gas_scene(2, effects), 'bench_effects'))
         stages = ', '.join(world.pipeline.names)
-        print(f'| {label} | {stages} | {seconds * 1e3:.1f} | {seconds / baseline:.2f} |',
-              flush=True)
+        print(f'| {label} | {stages} | {seconds * 1e3:.1f} | {seconds / baseline:.2f} |')
     return 0
 
 

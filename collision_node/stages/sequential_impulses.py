@@ -263,36 +263,43 @@ class SequentialImpulseStage(Stage):
 
         Shock propagation (Guendelman, Bridson and Fedkiw 2003): sweeps over a
         pile converge slowly because each inelastic impulse pushes the lower
-        particle down again. One final pass, pairs ordered by the height of
-        their lower particle along -g, treats the lower particle as
-        immovable and stops the upper one's approach (e = 0). It acts only
-        on pairs still closing slower than the restitution threshold, i.e.
-        resting contact the sweeps left unfinished; real impacts were
-        solved by the sweeps. Returns None when no pair needed it.
+        particle down again. Final passes, pairs ordered by the height of
+        their lower particle along -g, treat the lower particle as immovable
+        and stop the upper one's approach (e = 0): its velocity along the
+        line of action becomes the lower one's, but never more than 0, so a
+        lower particle moving up or sideways cannot lift it (a frozen
+        particle would otherwise push with infinite mass and add energy);
+        only the upper particle's kinetic energy changes, and it can only
+        fall. It acts only on pairs still closing slower than the
+        restitution threshold, i.e. resting contact the sweeps left
+        unfinished; real impacts were solved by the sweeps. Returns None
+        when no pair needed it.
         """
         height = -(state.position @ gravity)
         i_lower = height[i] <= height[j]
         order = np.argsort(np.where(i_lower, height[i], height[j]), kind='stable')
         i, j, normal, i_lower = i[order], j[order], normal[order], i_lower[order]
-        w_i = np.where(i_lower, 0.0, state.inv_mass[i])
-        w_j = np.where(i_lower, state.inv_mass[j], 0.0)
+        lower = np.where(i_lower, i, j)
         upper = np.where(i_lower, j, i)
+        outward = np.where(i_lower[:, None], -normal, normal)    # lower -> upper
         batches, leftover = color_pairs(i, j, state.dynamic, MAX_BATCHES)
         if leftover.size:
             batches.append(leftover)
         removed = None
+        dynamic = state.dynamic
         for batch in batches:
-            bi, bj, bn = i[batch], j[batch], normal[batch]
-            vn = closing_speed(state.velocity, bi, bj, bn)
-            w_sum = w_i[batch] + w_j[batch]
-            resting = (vn < -tolerance) & (-vn < threshold) & (w_sum > 0.0)
+            up, n_out = upper[batch], outward[batch]
+            u_upper = np.einsum('ij,ij->i', state.velocity[up], n_out)
+            u_lower = np.einsum('ij,ij->i', state.velocity[lower[batch]], n_out)
+            target = np.minimum(u_lower, 0.0)
+            resting = ((u_upper < target - tolerance) & (u_lower - u_upper < threshold)
+                       & dynamic[up])
             if not resting.any():
                 continue
-            moved = np.unique(upper[batch][resting])
+            moved = np.unique(up[resting])
             before = kinetic_linear(state, moved)
-            magnitude = np.where(resting, -vn / np.where(w_sum > 0.0, w_sum, 1.0), 0.0)
-            np.add.at(state.velocity, bi, (magnitude * w_i[batch])[:, None] * bn)
-            np.add.at(state.velocity, bj, -(magnitude * w_j[batch])[:, None] * bn)
+            np.add.at(state.velocity, up[resting],
+                      (target - u_upper)[resting, None] * n_out[resting])
             removed = (removed or 0.0) + before - kinetic_linear(state, moved)
         return removed
 
