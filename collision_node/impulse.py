@@ -41,28 +41,25 @@ def apply_normal_impulses(velocity: np.ndarray, inv_mass: np.ndarray, i: np.ndar
     return approaching
 
 
-def apply_velocity_targets(velocity: np.ndarray, inv_mass: np.ndarray, i: np.ndarray,
-                           j: np.ndarray, normal: np.ndarray, target, tolerance: float
-                           ) -> tuple[np.ndarray, np.ndarray, float]:
-    """Push pairs whose normal velocity is below their target up to it, in place.
+def apply_normal_impulses_booked(velocity: np.ndarray, inv_mass: np.ndarray, i: np.ndarray,
+                                 j: np.ndarray, normal: np.ndarray, restitution,
+                                 tolerance: float = 0.0
+                                 ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Like :func:`apply_normal_impulses`, also returning magnitudes and energy removed.
 
-    The target is the separation speed restitution calls for, e times the
-    closing speed before the solve (0 for resting or inelastic contact); a
-    pair is hit when vn < target - tolerance and gets
-    j = (target - vn) / (w1 + w2), which only pushes apart. With e = 1 the
-    sweeps converge to the lecture's elastic result even when a particle
-    is hit twice in one step. Pairs in one call share no dynamic particle,
-    so the kinetic energy removed is exact per pair, -j (vn + target) / 2
-    (negative while a sweep restores an elastic bounce that an earlier one
-    cut short). Returns (mask of pairs hit, magnitudes, energy removed).
+    Pairs closing slower than ``tolerance`` count as not approaching, so
+    repeated sweeps stop on rounding-level residues. Pairs in one call
+    share no dynamic particle, so the kinetic energy removed is exact per
+    pair, j |vn| (1 - e) / 2 >= 0: no application ever adds energy.
+    Returns (mask of pairs hit, impulse magnitudes, energy removed in J).
     """
     vn = closing_speed(velocity, i, j, normal)
-    below = vn < target - tolerance
-    if not np.any(below):
-        return below, np.zeros_like(vn), 0.0
+    approaching = vn < -tolerance
+    if not np.any(approaching):
+        return approaching, np.zeros_like(vn), 0.0
     w_i, w_j = inv_mass[i], inv_mass[j]
-    magnitude = np.where(below, (target - vn) / (w_i + w_j), 0.0)
+    magnitude = np.where(approaching, -(1.0 + restitution) * vn / (w_i + w_j), 0.0)
     np.add.at(velocity, i, (magnitude * w_i)[:, None] * normal)
     np.add.at(velocity, j, -(magnitude * w_j)[:, None] * normal)
-    removed = -0.5 * float(np.sum(magnitude * (vn + target)))
-    return below, magnitude, removed
+    removed = 0.5 * float(np.sum(magnitude * -vn * (1.0 - restitution)))
+    return approaching, magnitude, removed

@@ -24,7 +24,7 @@ from ..coloring import color_pairs
 from ..effects import Walls, combine
 from ..energy import kinetic_linear
 from ..friction import apply_pair_friction, apply_wall_friction
-from ..impulse import apply_normal_impulses, apply_velocity_targets, closing_speed
+from ..impulse import apply_normal_impulses, apply_normal_impulses_booked, closing_speed
 from ..pipeline import Contacts, Stage, StepContext
 
 # Past this many colours (only in very dense clusters, e.g. a thousand
@@ -51,30 +51,31 @@ WALL_SLOP = 1.0e-9
 class WallContacts:
     """Particles touching one wall plane, solved as one batch in each sweep."""
 
-    def __init__(self, axis: int, inward: float, index: np.ndarray, target,
+    def __init__(self, axis: int, inward: float, index: np.ndarray, restitution,
                  friction) -> None:
-        """Keep the plane, touching particles, target separation speeds and mu."""
+        """Keep the plane, touching particles, their restitution (thresholded) and mu."""
         self.axis, self.inward, self.index = axis, inward, index
-        self.target, self.friction = target, friction
+        self.restitution, self.friction = restitution, friction
 
     def solve(self, state, tolerance: float, planar: bool, lost: dict
               ) -> Optional[np.ndarray]:
-        """Push particles below their target speed off the plane up to it; book losses.
+        """Reflect particles approaching the plane, v_n -> -e v_n; book losses.
 
-        The target is e times the approach speed before the solve (0 below
-        the restitution threshold), as for pairs. Returns the mask of
-        particles hit, or None when none was below its target.
+        e is 0 for particles that approached slower than the restitution
+        threshold before the solve, as for pairs. Returns the mask of
+        particles hit, or None when none approached.
         """
         index = self.index
         u = self.inward * state.velocity[index, self.axis]
-        approaching = u < self.target - tolerance
+        approaching = u < -tolerance
         if not approaching.any():
             return None
-        change = np.where(approaching, self.target - u, 0.0)
+        e = self.restitution
+        change = np.where(approaching, -(1.0 + e) * u, 0.0)
         state.velocity[index, self.axis] += self.inward * change
         w = state.inv_mass[index]
         impulse = change / w
-        lost['walls'] -= 0.5 * float(np.sum(impulse * (u + self.target)))
+        lost['walls'] += 0.5 * float(np.sum(impulse * -u * (1.0 - e)))
         if self.friction is not None:
             hit = index[approaching]
             normal = np.zeros((hit.size, 3))
@@ -167,14 +168,18 @@ class SequentialImpulseStage(Stage):
                          None if own_mu is None else own_mu[j], self.friction)
         mu_per_pair = np.ndim(mu) > 0
         planar = ctx.dimensions == 2
+        shock = ctx.effects.gravity is not None and threshold > 0.0
         tolerance = RESIDUAL_FRACTION * threshold
-        # Restitution is decided once per step from the closing speed before
-        # the solve (as Box2D does): each pair's target separation speed is
-        # e |vn| (0 below the threshold), and sweeps push pairs up to their
-        # target. Re-applying (1 + e) to the current closing speed in every
-        # sweep would pump energy into a resting pile.
-        vn0 = closing_speed(state.velocity, i, j, normal)
-        target = np.where(-vn0 < threshold, 0.0, -restitution * np.minimum(vn0, 0.0))
+        # The threshold is applied to the closing speed before the solve
+        # (as Box2D does): a pair that arrives slower is inelastic for the
+        # whole solve, however the sweeps move it, so a resting pile does
+        # not bounce. Every impulse then uses (1 + e) on the current
+        # closing speed, which never adds energy and keeps the lecture's
+        # elastic result when a particle is hit twice in one step.
+        if threshold > 0.0 and len(contacts):
+            vn0 = closing_speed(state.velocity, i, j, normal)
+            restitution = np.where(-vn0 < threshold, 0.0, restitution)
+        per_pair = np.ndim(restitution) > 0
         batches, leftover = color_pairs(i, j, state.dynamic, MAX_BATCHES)
         walls = self._wall_contacts(ctx, threshold)
         hit = np.zeros(len(contacts), dtype=bool)
@@ -184,8 +189,9 @@ class SequentialImpulseStage(Stage):
             applied = False
             for batch in batches:
                 bi, bj, bn = i[batch], j[batch], normal[batch]
-                mask, magnitude, removed = apply_velocity_targets(
-                    state.velocity, state.inv_mass, bi, bj, bn, target[batch], tolerance)
+                e = restitution[batch] if per_pair else restitution
+                mask, magnitude, removed = apply_normal_impulses_booked(
+                    state.velocity, state.inv_mass, bi, bj, bn, e, tolerance)
                 if not mask.any():
                     continue
                 hit[batch[mask]] = True
@@ -215,7 +221,7 @@ class SequentialImpulseStage(Stage):
                     applied = True
             if not applied:
                 break
-        if ctx.effects.gravity is not None and threshold > 0.0 and len(contacts):
+        if shock and len(contacts):
             for _ in range(SHOCK_PASSES):
                 removed = self._shock_pass(state, i, j, normal, ctx.effects.gravity,
                                            threshold, tolerance)
@@ -246,13 +252,14 @@ class SequentialImpulseStage(Stage):
                 continue
             own = None if s.restitution is None else s.restitution[index]
             e = combine(own, None, self.walls.restitution)
-            u0 = inward * s.velocity[index, axis]
-            target = np.where(-u0 < threshold, 0.0, -e * np.minimum(u0, 0.0))
+            if threshold > 0.0:
+                u0 = inward * s.velocity[index, axis]
+                e = np.where(-u0 < threshold, 0.0, e)
             mu = None
             if self.friction is not None:
                 own_mu = None if s.friction is None else s.friction[index]
                 mu = combine(own_mu, None, self.friction)
-            out.append(WallContacts(axis, inward, index, target, mu))
+            out.append(WallContacts(axis, inward, index, e, mu))
         return out
 
     @staticmethod
