@@ -447,3 +447,32 @@ def test_elastic_pile_never_gains_total_energy():
         world.step()
         assert world.energy()['total'] <= start * (1.0 + 1e-4)
         assert_balance(world)
+
+
+@pytest.mark.parametrize('name, stages', [
+    ('oblique_pair', ['drift', 'broadphase', 'narrowphase', 'contact_impulses', 'separation']),
+    ('bouncing_balls', ['drift', 'gravity', 'walls', 'broadphase', 'narrowphase',
+                        'contact_impulses', 'separation']),
+    ('pile', ['drift', 'gravity', 'spin', 'walls', 'broadphase', 'narrowphase',
+              'contact_impulses', 'separation']),
+    ('spin_billiards', ['drag', 'spin', 'walls', 'broadphase', 'narrowphase',
+                        'contact_impulses', 'separation']),
+])
+def test_shipped_scenes_explain_exactly_their_stages(name, stages, capsys):
+    assert simulate_main([name, '--explain']) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split(':')[0].split('. ')[1] for line in lines] == stages
+
+
+def test_spawned_energy_enters_the_balance_and_spin_needs_friction():
+    world = one_ball({'gravity': [0, -G], 'walls': {'min': [None, 0.0], 'restitution': 0.5}},
+                     position=[0.0, 1.0])
+    world.step(100)
+    world.spawn_text('{position: [1.0, 2.0], velocity: [3.0, 0.0], radius: 0.1, mass: 1.0}')
+    assert world.energy()['spawned'] == pytest.approx(0.5 * 9.0 + G * 2.0, rel=1e-15)
+    world.step(200)
+    assert_balance(world)
+    with pytest.raises(SceneError, match=r'spawn: particles\[0\]\.angular_velocity'):
+        world.spawn_text('{position: [1, 3], radius: 0.1, mass: 1, '
+                         'angular_velocity: [0, 0, 2]}')
+    assert len(world.state) == 2
