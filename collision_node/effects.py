@@ -115,10 +115,6 @@ class Effects:
         """Whether particles carry angular velocity and orientation."""
         return self.friction is not None
 
-    def declared(self) -> list[str]:
-        """Names of the declared effects, in ``EFFECT_KEYS`` order."""
-        return [key for key in EFFECT_KEYS if getattr(self, key) is not None]
-
 
 def combine(own_i: Optional[np.ndarray], own_j: Optional[np.ndarray], default):
     """Geometric-mean combine rule for per-particle coefficients.

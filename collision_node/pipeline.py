@@ -132,6 +132,7 @@ def build_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
         stages.append(WallStage(effects.walls, friction=effects.friction))
     stages += [BroadphaseStage(), NarrowphaseStage(),
                SequentialImpulseStage(effects.particle_restitution, accuracy.iterations,
-                                      friction=effects.friction, walls=effects.walls),
+                                      friction=effects.friction, walls=effects.walls,
+                                      gravity=effects.gravity),
                SeparationStage(walls=effects.walls)]
     return Pipeline(stages)

@@ -111,7 +111,8 @@ class SeparationStage(Stage):
 
     def describe(self) -> str:
         """Say what the stage does."""
-        text = 'position projection along N shared by inverse mass (velocities untouched)'
+        text = ('position projection along N shared by inverse mass (velocities untouched; '
+                f'{GRAVITY_PASSES} passes under gravity)')
         if self.walls is not None:
             text += ', then back onto wall planes'
         return text

@@ -5,13 +5,26 @@ until no contact approaches or the iteration budget is spent. Each
 impulse only changes the velocity component along N, exactly as the
 lecture's velocity update.
 
-With e < 1, per-particle restitution, a restitution threshold or friction
-the solve books the energy it removes, per effect ('restitution',
-'friction'), from the exact per-pair formulas. Friction (see
-``collision_node.friction``) is applied to a pair right after its normal
-impulse in the same colour batch, bounded by mu times that normal
-impulse, so pairs sharing a particle stay sequential. The dense-cluster
-fallback (pairs past ``MAX_BATCHES`` colours) is frictionless.
+A scene without effects (e = 1, no threshold) takes the lecture's path
+unchanged. With e < 1 only, the energy removed is measured around the
+solve. With per-particle restitution, a restitution threshold (gravity
+sets one by default), friction or walls the general path runs:
+
+- restitution per pair by the combine rule (``effects.combine``), set to
+  0 for pairs closing slower than the threshold before the solve;
+- particles touching a wall plane are solved in every sweep, one batch
+  per plane, so piles rest on their floor;
+- friction (``collision_node.friction``) right after a pair's normal
+  impulse in the same colour batch, bounded by mu times that impulse, so
+  pairs sharing a particle stay sequential;
+- under gravity, shock passes finish resting contact (``_shock_pass``);
+  they act only on contacts closing slower than the threshold and, like a
+  floor, do not conserve momentum;
+- the energy removed is booked per effect ('restitution', 'walls',
+  'friction') from the exact per-contact formulas.
+
+The dense-cluster fallback (pairs past ``MAX_BATCHES`` colours) is
+frictionless.
 """
 
 from __future__ import annotations
@@ -93,7 +106,8 @@ class SequentialImpulseStage(Stage):
     name = 'contact_impulses'
 
     def __init__(self, restitution: float, iterations: int,
-                 friction: Optional[float] = None, walls: Optional[Walls] = None) -> None:
+                 friction: Optional[float] = None, walls: Optional[Walls] = None,
+                 gravity: Optional[np.ndarray] = None) -> None:
         """Keep the particle-particle restitution, the sweep budget, friction mu and walls.
 
         With walls, particles touching a wall plane are solved together with
@@ -106,6 +120,7 @@ class SequentialImpulseStage(Stage):
         self.iterations = iterations
         self.friction = friction
         self.walls = walls
+        self.gravity = gravity
 
     def run(self, ctx: StepContext) -> None:
         """Apply impulses in place and count the contacts that received one."""
@@ -160,7 +175,6 @@ class SequentialImpulseStage(Stage):
         own = state.restitution
         restitution = combine(None if own is None else own[i],
                               None if own is None else own[j], self.restitution)
-        per_pair = np.ndim(restitution) > 0
         mu = None
         if self.friction is not None:
             own_mu = state.friction
@@ -168,7 +182,7 @@ class SequentialImpulseStage(Stage):
                          None if own_mu is None else own_mu[j], self.friction)
         mu_per_pair = np.ndim(mu) > 0
         planar = ctx.dimensions == 2
-        shock = ctx.effects.gravity is not None and threshold > 0.0
+        shock = self.gravity is not None and threshold > 0.0
         tolerance = RESIDUAL_FRACTION * threshold
         # The threshold is applied to the closing speed before the solve
         # (as Box2D does): a pair that arrives slower is inelastic for the
@@ -223,8 +237,8 @@ class SequentialImpulseStage(Stage):
                 break
         if shock and len(contacts):
             for _ in range(SHOCK_PASSES):
-                removed = self._shock_pass(state, i, j, normal, ctx.effects.gravity,
-                                           threshold, tolerance)
+                removed = self._shock_pass(state, i, j, normal, self.gravity, threshold,
+                                           tolerance)
                 # Walls are the bottom of every pile: solve them after each pass.
                 for wall in walls:
                     wall.solve(state, tolerance, planar, lost)
@@ -329,7 +343,11 @@ class SequentialImpulseStage(Stage):
         """Say what the stage does."""
         text = (f'impulse j = -(1+e) vn / (w1+w2) along N, e = {self.restitution:g}, '
                 f'colour by colour, up to {self.iterations} sweeps')
+        if self.walls is not None:
+            text += '; wall contacts in every sweep'
         if self.friction is not None:
             text += (f'; Coulomb friction mu = {self.friction:g} with spin '
                      '(|J_t| <= mu j, I = 2/5 m r^2)')
+        if self.gravity is not None:
+            text += '; e = 0 below the restitution threshold; shock passes for resting contact'
         return text
