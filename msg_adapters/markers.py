@@ -28,13 +28,14 @@ def sphere_groups(radius: np.ndarray, inv_mass: np.ndarray) -> list[tuple[float,
                                                                           np.ndarray]]:
     """Return (radius, static, particle indices) per group, by radius then static."""
     static = inv_mass == 0.0
-    keys = np.stack([radius, static.astype(float)], axis=1)
-    unique, inverse = np.unique(keys, axis=0, return_inverse=True)
+    radii, radius_index = np.unique(radius, return_inverse=True)
+    # One integer key per (radius, static): sorting ints is far cheaper than rows.
+    keys, inverse = np.unique(radius_index.reshape(-1) * 2 + static, return_inverse=True)
     inverse = inverse.reshape(-1)
     order = np.argsort(inverse, kind='stable')
-    bounds = np.searchsorted(inverse[order], np.arange(unique.shape[0] + 1))
-    return [(float(unique[g, 0]), bool(unique[g, 1]), order[bounds[g]:bounds[g + 1]])
-            for g in range(unique.shape[0])]
+    bounds = np.searchsorted(inverse[order], np.arange(keys.size + 1))
+    return [(float(radii[keys[g] // 2]), bool(keys[g] % 2), order[bounds[g]:bounds[g + 1]])
+            for g in range(keys.size)]
 
 
 def _marker_head(writer: CdrWriter, sec: int, nanosec: int, frame_id: str, marker_id: int,
