@@ -15,6 +15,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any, Callable, Optional
@@ -26,7 +27,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 _domains = itertools.count()
-STATUS_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+STATUS_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
@@ -54,9 +55,25 @@ def ros_env(domain_id: int) -> dict[str, str]:
 
 
 def start(name: str, args: list[str], domain_id: int) -> subprocess.Popen:
-    """Start an installed executable on ``domain_id``; output goes to pipes."""
-    return subprocess.Popen([executable(name), *args], env=ros_env(domain_id),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    """Start an installed executable on ``domain_id``.
+
+    Its output goes to unnamed temporary files (a pipe nobody reads while
+    the test runs could fill up and block the process); ``output`` reads them.
+    """
+    out, err = tempfile.TemporaryFile('w+'), tempfile.TemporaryFile('w+')
+    process = subprocess.Popen([executable(name), *args], env=ros_env(domain_id),
+                               stdout=out, stderr=err, text=True)
+    process.output_files = (out, err)
+    return process
+
+
+def output(process: subprocess.Popen) -> tuple[str, str]:
+    """Return what the process has written so far to stdout and stderr."""
+    texts = []
+    for file in process.output_files:
+        file.seek(0)
+        texts.append(file.read())
+    return texts[0], texts[1]
 
 
 def stop(process: subprocess.Popen, sig: int = signal.SIGINT,
@@ -65,10 +82,13 @@ def stop(process: subprocess.Popen, sig: int = signal.SIGINT,
     if process.poll() is None:
         process.send_signal(sig)
     try:
-        out, err = process.communicate(timeout=timeout)
+        process.wait(timeout=timeout)
     except subprocess.TimeoutExpired:
         process.kill()
-        out, err = process.communicate()
+        process.wait()
+    out, err = output(process)
+    for file in process.output_files:
+        file.close()
     return process.returncode, out, err
 
 
