@@ -63,24 +63,31 @@ RATE_WINDOW = 2.0            # s of wall time over which rates are measured
 STEP_BUDGET = 0.8            # share of a tick period the physics may use
 
 
+# The embedded default scene: pool balls (SI) and the cue ball's speed.
+BALL_RADIUS = 0.028575
+BALL_MASS = 0.17
+CUE_SPEED = 5.0
+
+
 def default_scene_text() -> str:
     """Return the embedded default scene: a 2-D billiards break (YAML).
 
-    Fifteen balls racked in a triangle and a cue ball at 6 m/s on an
-    elastic 2.54 m x 1.27 m table: the first collision comes after about
-    0.1 s and the balls keep colliding.
+    Fifteen balls racked in a triangle and a cue ball at 5 m/s on an
+    elastic 2.54 m x 1.27 m table, dt = 1/240 s (the cue ball moves 0.4
+    radii per step): the first collision comes after about 0.25 s and the
+    balls keep colliding.
     """
-    radius, mass = 0.028575, 0.17
+    radius, mass = BALL_RADIUS, BALL_MASS
     gap = 2.0 * radius * 1.001
     lines = [
         'name: billiards_break',
         'dimensions: 2',
-        'dt: 0.0016666666666666668',
+        'dt: 0.004166666666666667',
         'duration: 10.0',
         'effects:',
         '  walls: {min: [-1.27, -0.635], max: [1.27, 0.635]}',
         'particles:',
-        f'  - {{position: [-0.635, 0.0], velocity: [6.0, 0.0], radius: {radius}, '
+        f'  - {{position: [-0.635, 0.0], velocity: [{CUE_SPEED}, 0.0], radius: {radius}, '
         f'mass: {mass}}}',
     ]
     for row in range(5):

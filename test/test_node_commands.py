@@ -18,12 +18,12 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Empty, String
 from std_srvs.srv import Trigger
 
+from collision_node.node import CUE_SPEED
 from msg_adapters import state_from_point_cloud
 from node_harness import NodeUnderTest, output
 
 PARTICLES = 16
 MAX_PARTICLES = 40
-BALL = {'radius': 0.028575, 'mass': 0.17}
 
 
 @pytest.fixture(scope='module')
@@ -92,7 +92,7 @@ def assert_same_world(a: dict, b: dict) -> None:
 def test_initial_world_is_the_embedded_break(node):
     assert node.initial['ids'].tolist() == list(range(PARTICLES))
     np.testing.assert_array_equal(node.initial['position'][0], [-0.635, 0.0, 0.0])
-    np.testing.assert_array_equal(node.initial['velocity'][0], [6.0, 0.0, 0.0])
+    np.testing.assert_array_equal(node.initial['velocity'][0], [CUE_SPEED, 0.0, 0.0])
 
 
 def test_spawn_one_particle_with_the_requested_state(fresh):

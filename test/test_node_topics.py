@@ -12,6 +12,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import Marker, MarkerArray
 
+from collision_node.node import BALL_MASS, BALL_RADIUS, CUE_SPEED
 from msg_adapters import (particle_id_from_frame, poses_from_pose_array, seconds_from_stamp,
                           state_from_point_cloud)
 from node_harness import NodeUnderTest
@@ -71,8 +72,8 @@ def test_messages_of_one_tick_share_stamp_and_state(node):
     np.testing.assert_array_equal(state['ids'], np.arange(PARTICLES))
     np.testing.assert_array_equal(state['position'], position)
     np.testing.assert_array_equal(orientation, np.tile([0.0, 0.0, 0.0, 1.0], (PARTICLES, 1)))
-    np.testing.assert_allclose(state['radius'], 0.028575)
-    np.testing.assert_allclose(state['mass'], 0.17)
+    np.testing.assert_allclose(state['radius'], BALL_RADIUS)
+    np.testing.assert_allclose(state['mass'], BALL_MASS)
     assert np.all(state['position'][:, 2] == 0.0)          # a 2-D scene
 
 
@@ -91,8 +92,8 @@ def test_velocities_name_every_particle_each_tick(node):
     assert all(m.velocity.angular.z == 0.0 for m in tick)
     speeds = [np.hypot(m.velocity.linear.x, m.velocity.linear.y) for m in tick]
     # Elastic billiards: the kinetic energy of the 6 m/s cue ball is conserved.
-    energy = 0.5 * 0.17 * sum(s * s for s in speeds)
-    assert energy == pytest.approx(0.5 * 0.17 * 36.0, rel=1e-9)
+    energy = 0.5 * BALL_MASS * sum(s * s for s in speeds)
+    assert energy == pytest.approx(0.5 * BALL_MASS * CUE_SPEED ** 2, rel=1e-9)
 
 
 def test_markers_draw_every_particle_sized_by_radius(node):
@@ -101,12 +102,12 @@ def test_markers_draw_every_particle_sized_by_radius(node):
     assert msg.markers[0].action == Marker.DELETEALL
     spheres = msg.markers[1:]
     assert [m.type for m in spheres] == [Marker.SPHERE_LIST]
-    assert spheres[0].scale.x == pytest.approx(2 * 0.028575)
+    assert spheres[0].scale.x == pytest.approx(2 * BALL_RADIUS)
     assert len(spheres[0].points) == PARTICLES
 
 
 def test_status_reports_the_world(node):
     status = node.next_status(lambda s: s['time'] > 0.0)
     assert status['particles'] == PARTICLES and status['scene'] == 'billiards_break'
-    assert status['kinetic_energy'] == pytest.approx(0.5 * 0.17 * 36.0, rel=1e-9)
+    assert status['kinetic_energy'] == pytest.approx(0.5 * BALL_MASS * CUE_SPEED ** 2, rel=1e-9)
     assert status['error'] is None
