@@ -160,7 +160,7 @@ def run(viewer: Viewer, args: argparse.Namespace, out: TextIO) -> int:
                 args.snapshot is None or viewer.state is not None):
             break
         if deadline is not None and time.monotonic() > deadline:
-            missing = 'a status' if viewer.status is None else 'particles/state'
+            missing = 'status' if viewer.status is None else 'particles/state'
             print(f'viewer: no {missing} from collision_node within {timeout:g} s '
                   '(is it running, on the same ROS_DOMAIN_ID and namespace?)', file=sys.stderr)
             return 1
