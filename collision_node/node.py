@@ -61,6 +61,7 @@ STATUS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 STATUS_PERIOD = 0.5          # s of wall time between status messages
 RATE_WINDOW = 2.0            # s of wall time over which rates are measured
 STEP_BUDGET = 0.8            # share of a tick period the physics may use
+BACKLOG_KEPT = 0.25          # s of wall time the physics may lag once it fell behind
 
 
 # The embedded default scene: pool balls (SI) and the cue ball's speed.
@@ -104,7 +105,8 @@ class Pacer:
 
     Simulated time is anchored to a wall instant; the anchor moves whenever
     the factor changes, the world resumes or is reset, or the physics fell
-    behind (so a backlog is never chased: the world runs slower instead).
+    behind (so a backlog is never chased beyond BACKLOG_KEPT: the world
+    runs slower instead, stepping all the time it is given).
     """
 
     def __init__(self, dt: float, factor: float, wall: float, sim_time: float) -> None:
@@ -328,8 +330,11 @@ class CollisionNode(Node):
             self.get_logger().error(f'stopped stepping: {error}; reset to go on')
             return
         if done < due:
-            # Behind: run slower than real time from here instead of chasing the backlog.
-            self.pacer.restart(time.monotonic(), self.world.time)
+            # Behind: run slower than real time from here instead of chasing the
+            # whole backlog, but keep a little of it so that every tick has work
+            # at once (with none, the overdue next tick would find nothing due
+            # and the physics would idle while it is behind).
+            self.pacer.restart(time.monotonic() - BACKLOG_KEPT, self.world.time)
             self.keeping_up = False
             if not self.behind_reported:
                 self.behind_reported = True
