@@ -1,6 +1,7 @@
 """Benchmark the node: cost per publish tick of each output, and the real-time factor.
 
-    python -m collision_node.bench_node [--sizes 1000 10000] [--seconds 5] [--repeat 20]
+    python -m collision_node.bench node [--sizes 1000 10000] [--seconds 5] [--repeat 20]
+    python -m collision_node.bench_node ...      (the same)
 
 Part 1 builds every output from a gas world of N particles with
 :mod:`msg_adapters` and publishes it through a real rclpy publisher
@@ -219,10 +220,8 @@ def rtf_rows(sizes: list[int], seconds: float) -> list[str]:
     return rows
 
 
-def main(argv: Optional[list[str]] = None) -> int:
-    """Run both parts and print Markdown."""
-    parser = argparse.ArgumentParser(prog='python -m collision_node.bench_node',
-                                     description=__doc__.split('\n')[0])
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the benchmark's options (``python -m collision_node.bench node``)."""
     parser.add_argument('--sizes', type=int, nargs='+', default=[1000, 10000])
     parser.add_argument('--seconds', type=float, default=5.0,
                         help='wall seconds per real-time-factor run (default 5)')
@@ -230,11 +229,15 @@ def main(argv: Optional[list[str]] = None) -> int:
                         help='timed repetitions per output (default 20)')
     parser.add_argument('--skip-rtf', action='store_true', help='only time the outputs')
     parser.add_argument('--sink', action='store_true', help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run both parts and print Markdown; 2 on bad options."""
     if args.sink:
         return run_sink()
     if any(n < 1 for n in args.sizes) or args.seconds <= 0 or args.repeat < 1:
-        parser.error('sizes, seconds and repeat must be positive')
+        print('bench node: sizes, seconds and repeat must be positive', file=sys.stderr)
+        return 2
     sink = subprocess.Popen([sys.executable, '-m', 'collision_node.bench_node', '--sink'])
     rclpy.init()
     try:
@@ -251,6 +254,14 @@ def main(argv: Optional[list[str]] = None) -> int:
         sink.send_signal(signal.SIGINT)
         sink.wait(timeout=20)
     return 0
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    """Parse options and run (``python -m collision_node.bench_node``)."""
+    parser = argparse.ArgumentParser(prog='python -m collision_node.bench_node',
+                                     description=__doc__.split('\n')[0])
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
 
 
 if __name__ == '__main__':

@@ -81,7 +81,7 @@ def default_scene_text() -> str:
     radius, mass = BALL_RADIUS, BALL_MASS
     gap = 2.0 * radius * 1.001
     lines = [
-        'name: billiards_break',
+        'name: elastic_break',
         'dimensions: 2',
         'dt: 0.004166666666666667',
         'duration: 10.0',
@@ -171,7 +171,7 @@ def _descriptor(description: str, kind: int, read_only: bool = False,
 
 PARAMETERS: dict[str, tuple[Any, ParameterDescriptor]] = {
     'scene': ('', _descriptor(
-        'Scene file path or shipped scene name; empty: the embedded billiards break',
+        'Scene file path or shipped scene name; empty: the embedded elastic billiards break',
         ParameterType.PARAMETER_STRING, read_only=True)),
     'real_time_factor': (1.0, _descriptor(
         'Simulated seconds per wall second (runtime-changeable)',
@@ -304,8 +304,8 @@ class CollisionNode(Node):
         """Load the ``scene`` parameter, or the embedded default when empty."""
         if scene:
             return load_scene(scene)
-        return parse_scene_text(default_scene_text(), '<embedded billiards_break>',
-                                default_name='billiards_break')
+        return parse_scene_text(default_scene_text(), '<embedded elastic_break>',
+                                default_name='elastic_break')
 
     # -- stepping and publishing ------------------------------------------
 

@@ -22,7 +22,7 @@ def test_viewer_prints_a_summary_and_writes_a_png_then_sigint_exits_zero(tmp_pat
     try:
         once = run_viewer(node.domain_id, '--once', '--timeout', '30')
         assert once.returncode == 0, once.stderr
-        assert 'billiards_break: 16 particles' in once.stdout
+        assert 'elastic_break: 16 particles' in once.stdout
         assert 'collisions/s' in once.stdout and 'KE ' in once.stdout
         picture = tmp_path / 'world.png'
         snap = run_viewer(node.domain_id, '--snapshot', str(picture), '--timeout', '30')

@@ -108,6 +108,6 @@ def test_markers_draw_every_particle_sized_by_radius(node):
 
 def test_status_reports_the_world(node):
     status = node.next_status(lambda s: s['time'] > 0.0)
-    assert status['particles'] == PARTICLES and status['scene'] == 'billiards_break'
+    assert status['particles'] == PARTICLES and status['scene'] == 'elastic_break'
     assert status['kinetic_energy'] == pytest.approx(0.5 * BALL_MASS * CUE_SPEED ** 2, rel=1e-9)
     assert status['error'] is None
