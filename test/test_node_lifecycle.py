@@ -71,3 +71,16 @@ def test_viewer_without_a_node_gives_up_after_its_timeout():
     result = run_viewer(unique_domain_id(), '--once', '--timeout', '1')
     assert result.returncode == 1
     assert 'no status from collision_node within 1 s' in result.stderr
+
+
+def test_a_node_that_cannot_keep_up_says_so_once_and_keeps_stepping():
+    node = NodeUnderTest(['-p', 'real_time_factor:=1000.0', '-p', 'publish_rate:=20.0'])
+    try:
+        behind = node.next_status(lambda s: not s['keeping_up'])
+        later = node.next_status(lambda s: s['steps'] > behind['steps'] + 100)
+        assert not later['keeping_up']
+        assert 0.0 < later['measured_real_time_factor'] < 1000.0
+    finally:
+        code, _, err = node.stop(signal.SIGINT)
+    assert code == 0, err
+    assert len([line for line in err.splitlines() if 'cannot keep up' in line]) == 1
