@@ -44,7 +44,8 @@ def test_scene_file_parameter_then_sigterm_exits_zero(tmp_path):
                      '  - {position: [0, 0, 0], radius: 0.1, mass: 1}\n'
                      '  - {position: [1, 0, 0], velocity: [-1, 0, 0], radius: 0.1, mass: 1}\n'
                      '  - {position: [0, 1, 0], radius: 0.2, mass: .inf}\n')
-    node = NodeUnderTest(['-p', f'scene:={scene}', '-p', 'real_time_factor:=2.0'])
+    node = NodeUnderTest(['-p', f'scene:={scene}', '-p', 'real_time_factor:=2.0',
+                          '-p', 'accuracy:=balanced'])
     try:
         status = node.status()
         assert (status['scene'], status['particles'], status['dt']) == ('three', 3, 0.01)
@@ -57,13 +58,19 @@ def test_scene_file_parameter_then_sigterm_exits_zero(tmp_path):
     assert 'Traceback' not in err
 
 
-def test_bad_scene_exits_2_with_one_error_line(tmp_path):
+@pytest.mark.parametrize('parameter, message', [
+    ('scene:={tmp}/nope.yaml', 'no such scene file'),
+    ('accuracy:=sloppy', 'parameter accuracy: unknown preset'),
+    ('frame_id:=my frame', 'frame_id: must be a non-empty name without spaces'),
+    ('max_particles:=3', 'exceed max_particles = 3'),
+])
+def test_bad_start_up_exits_2_with_one_error_line(tmp_path, parameter, message):
     result = subprocess.run(
-        [executable('collision_node'), '--ros-args', '-p', f'scene:={tmp_path / "nope.yaml"}'],
+        [executable('collision_node'), '--ros-args', '-p', parameter.format(tmp=tmp_path)],
         env=ros_env(unique_domain_id()), capture_output=True, text=True, timeout=60)
     assert result.returncode == 2
     errors = [line for line in result.stderr.splitlines() if '[ERROR]' in line]
-    assert len(errors) == 1 and 'no such scene file' in errors[0]
+    assert len(errors) == 1 and message in errors[0]
     assert 'Traceback' not in result.stderr
 
 
