@@ -8,6 +8,8 @@ import time
 import numpy as np
 import pytest
 from geometry_msgs.msg import PoseArray, VelocityStamped
+from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import Marker, MarkerArray
@@ -111,3 +113,30 @@ def test_status_reports_the_world(node):
     assert status['particles'] == PARTICLES and status['scene'] == 'elastic_break'
     assert status['kinetic_energy'] == pytest.approx(0.5 * BALL_MASS * CUE_SPEED ** 2, rel=1e-9)
     assert status['error'] is None
+
+
+def set_parameter(node, name: str, value: float) -> None:
+    """Set a double parameter of the node through its parameter service."""
+    client = node.probe.node.create_client(SetParameters, 'table/collision_node/set_parameters')
+    request = SetParameters.Request(parameters=[Parameter(name=name, value=ParameterValue(
+        type=ParameterType.PARAMETER_DOUBLE, double_value=value))])
+    assert node.probe.call(client, request).results[0].successful
+
+
+def test_real_time_factor_and_publish_rate_change_at_run_time(node):
+    arrivals = []
+    node.probe.node.create_subscription(
+        Clock, '/clock', lambda m: arrivals.append((time.monotonic(), m)), 10)
+    set_parameter(node, 'real_time_factor', 3.0)
+    set_parameter(node, 'publish_rate', 10.0)
+    try:
+        start = len(arrivals)
+        node.probe.wait_for(lambda: len(arrivals) >= start + 12)
+        recent = arrivals[start + 2:]
+        wall = [t for t, _ in recent]
+        sim = [seconds_from_stamp(m.clock) for _, m in recent]
+        assert 0.05 < statistics.median(np.diff(wall)) < 0.2         # 10 Hz now
+        assert 2.0 < (sim[-1] - sim[0]) / (wall[-1] - wall[0]) < 4.0  # 3x wall time
+    finally:
+        set_parameter(node, 'real_time_factor', 1.0)
+        set_parameter(node, 'publish_rate', RATE)
