@@ -1,6 +1,7 @@
 """Benchmark: cost of each effect alone and of all together, per step.
 
-    python -m collision_node.bench_effects [--count N] [--steps K] [--repeats R]
+    python -m collision_node.bench effects [--count N] [--steps K] [--repeats R]
+    python -m collision_node.bench_effects [same options]
 
 Runs the same gas (default 10,000 particles, 3-D) under each effect
 configuration and prints the median wall time per step and its ratio to
@@ -59,13 +60,22 @@ def time_per_step(count: int, effects: Optional[dict], steps: int) -> float:
     return (time.perf_counter() - start) / steps
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    """Run the benchmark and print the table; return the exit code."""
-    parser = argparse.ArgumentParser(prog='bench_effects', description=__doc__.split('\n')[0])
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add this benchmark's options (for ``python -m collision_node.bench effects``)."""
     parser.add_argument('--count', type=int, default=10_000, help='particles (default 10000)')
-    parser.add_argument('--steps', type=int, default=20, help='timed steps per run')
-    parser.add_argument('--repeats', type=int, default=5, help='runs per configuration')
-    args = parser.parse_args(argv)
+    parser.add_argument('--steps', type=int, default=50, help='timed steps per run')
+    parser.add_argument('--repeats', type=int, default=7, help='runs per configuration')
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Parse options, run the benchmark; return the exit code."""
+    parser = argparse.ArgumentParser(prog='bench_effects', description=__doc__.split('\n')[0])
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the benchmark and print the table; return the exit code."""
     load = os.getloadavg()
     print(f'# {args.count} particles, {args.steps} steps x {args.repeats} runs per row, '
           f'median; load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}, '

@@ -8,6 +8,7 @@ source, the particle index and the field.
 
 from __future__ import annotations
 
+import re
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +28,26 @@ SCENE_KEYS = ('name', 'dimensions', 'dt', 'duration', 'accuracy', 'effects', 'pa
 DEFAULT_DT = 1.0 / 240.0
 DEFAULT_DURATION = 1.0
 MAX_DT = 1.0
+
+
+class SceneLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, reading numbers such as 1e3 and 1.0e13 as floats.
+
+    PyYAML follows YAML 1.1, where an exponent needs a sign and a mantissa
+    a dot, so ``mass: 1e3`` would be the string '1e3'. Scene authors write
+    SCI notation as in YAML 1.2 and JSON; this resolver accepts it.
+    """
+
+
+SceneLoader.add_implicit_resolver(
+    'tag:yaml.org,2002:float',
+    re.compile(r'^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$'),
+    list('-+0123456789.'))
+
+
+def load_yaml(text: str):
+    """Parse YAML (or JSON) text with :class:`SceneLoader`."""
+    return yaml.load(text, Loader=SceneLoader)  # noqa: S506 (a SafeLoader subclass)
 
 
 @dataclass(frozen=True)
@@ -96,7 +117,7 @@ def load_scene(path_or_name: Union[str, Path]) -> Scene:
 def parse_scene_text(text: str, source: str, default_name: str = 'scene') -> Scene:
     """Parse YAML (or JSON, a subset of YAML) text into a scene."""
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text)
     except yaml.YAMLError as error:
         raise SceneError(f'{source}: not valid YAML: {_one_line(error)}') from None
     return parse_scene(data, source, default_name)
@@ -105,7 +126,7 @@ def parse_scene_text(text: str, source: str, default_name: str = 'scene') -> Sce
 def parse_scene(data: Any, source: str, default_name: str = 'scene') -> Scene:
     """Validate a scene mapping; ``source`` prefixes every error message."""
     data = require_mapping(data, source)
-    reject_unknown_keys(data, SCENE_KEYS, source)
+    reject_unknown_keys(data, SCENE_KEYS, source, separator=': ')
     name = data.get('name', default_name)
     if not isinstance(name, str) or not name:
         fail(f'{source}: name', f'expected a non-empty string, got {name!r}')
@@ -154,7 +175,7 @@ def parse_spawn(text: str, dimensions: int, first_id: int,
     (a mapping with ``kind``), or ``{particles: [...], generate: [...]}``.
     """
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text)
     except yaml.YAMLError as error:
         raise SceneError(f'{source}: not valid YAML or JSON: {_one_line(error)}') from None
     if isinstance(data, list):
@@ -163,7 +184,7 @@ def parse_spawn(text: str, dimensions: int, first_id: int,
     if 'kind' in data:
         return parse_particle_section(None, [data], source, dimensions, first_id)
     if 'particles' in data or 'generate' in data:
-        reject_unknown_keys(data, ('particles', 'generate'), source)
+        reject_unknown_keys(data, ('particles', 'generate'), source, separator=': ')
         return parse_particle_section(data.get('particles'), data.get('generate'), source,
                                       dimensions, first_id)
     return parse_particle_section([data], None, source, dimensions, first_id)

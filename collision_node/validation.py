@@ -29,12 +29,18 @@ def require_mapping(value: Any, where: str) -> Mapping:
     return value
 
 
-def reject_unknown_keys(data: Mapping, allowed: Iterable[str], where: str) -> None:
-    """Raise if ``data`` has a key outside ``allowed``."""
+def reject_unknown_keys(data: Mapping, allowed: Iterable[str], where: str, *,
+                        separator: str = '.') -> None:
+    """Raise if ``data`` has a key outside ``allowed``.
+
+    The key is appended to ``where`` with ``separator``: '.' inside a
+    section (``effects.magnetism``), ': ' at the top of a source
+    (``scene.yaml: speed``).
+    """
     allowed = list(allowed)
     for key in data:
         if key not in allowed:
-            fail(f'{where}.{key}' if where else str(key),
+            fail(f'{where}{separator}{key}' if where else str(key),
                  f'unknown key (allowed: {", ".join(allowed)})')
 
 

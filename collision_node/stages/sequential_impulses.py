@@ -160,7 +160,10 @@ class SequentialImpulseStage(Stage):
                 if mask.any():
                     hit[leftover[mask]] = True
                     applied = True
-            if not applied:
+            # One batch shares no dynamic particle, so after one sweep every
+            # contact is resolved (vn' = -e vn >= 0) and a checking sweep
+            # would find nothing: skip it.
+            if not applied or (len(batches) == 1 and not leftover.size):
                 break
         ctx.stats.collisions += int(hit.sum())
         if track_energy:

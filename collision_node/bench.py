@@ -1,0 +1,45 @@
+"""Benchmark commands: ``python -m collision_node.bench SUBCOMMAND [options]``.
+
+Each subcommand lives in a module of its own that exposes
+``add_arguments(parser)`` and ``run(args) -> int``. Registering one is a
+one-line change: add ``'NAME': 'collision_node.bench_NAME'`` to
+``SUBCOMMANDS``. Modules are imported only when their subcommand runs, so
+one that needs ROS (``bench_node``) costs the others nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from typing import Optional, Sequence
+
+# Subcommand name -> module with add_arguments(parser) and run(args).
+SUBCOMMANDS: dict[str, str] = {
+    'throughput': 'collision_node.bench_throughput',
+    'node': 'collision_node.bench_node',
+    'effects': 'collision_node.bench_effects',
+}
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Parse the subcommand, hand the rest to its module; return the exit code."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = argparse.ArgumentParser(prog='python -m collision_node.bench',
+                                     description='collision_node benchmarks.')
+    commands = parser.add_subparsers(dest='command', metavar='SUBCOMMAND', required=True)
+    if argv and argv[0] in SUBCOMMANDS:
+        # Import only the module that will run; list the others by name.
+        module = importlib.import_module(SUBCOMMANDS[argv[0]])
+        sub = commands.add_parser(argv[0], help=(module.__doc__ or '').split('\n')[0])
+        module.add_arguments(sub)
+        args = parser.parse_args(argv)
+        return int(module.run(args))
+    for name in SUBCOMMANDS:
+        commands.add_parser(name)
+    parser.parse_args(argv)  # prints usage and exits 2 for an unknown subcommand
+    return 2
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,96 @@
+"""The broadphase never misses a contact: its Verlet list against brute force."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from collision_node import World, parse_scene
+from collision_node.pipeline import Stage, StepContext
+from collision_node.stages import broadphase as broadphase_module
+from collision_node.stages.broadphase import BroadphaseStage, candidate_pairs
+
+
+def brute_force_overlaps(position: np.ndarray, radius: np.ndarray) -> set:
+    """Return every pair (i < j) with |p_i - p_j| < r_i + r_j, by checking all of them."""
+    i, j = np.triu_indices(position.shape[0], k=1)
+    distance = np.linalg.norm(position[i] - position[j], axis=1)
+    hit = distance < radius[i] + radius[j]
+    return set(zip(i[hit].tolist(), j[hit].tolist()))
+
+
+class CheckCandidates(Stage):
+    """Assert, right after the broadphase, that its pairs hold every overlap."""
+
+    name = 'check_candidates'
+
+    def __init__(self) -> None:
+        """Count the overlaps seen, so the test knows it checked something."""
+        self.overlaps_seen = 0
+
+    def run(self, ctx: StepContext) -> None:
+        """Compare the candidate pairs with brute force."""
+        i, j = ctx.pair_i, ctx.pair_j
+        assert np.all(i < j)
+        keys = i * len(ctx.state) + j
+        assert np.all(np.diff(keys) > 0), 'pairs must be sorted by (i, j), without repeats'
+        overlaps = brute_force_overlaps(ctx.state.position, ctx.state.radius)
+        missing = overlaps - set(zip(i.tolist(), j.tolist()))
+        assert not missing, f'broadphase missed {sorted(missing)[:5]}'
+        self.overlaps_seen += len(overlaps)
+
+
+@pytest.mark.parametrize('seed, all_pairs_up_to', [(1, 48), (2, 0)])
+def test_verlet_list_with_fast_movers_misses_no_contact(monkeypatch, seed, all_pairs_up_to):
+    # all_pairs_up_to = 0 makes movers meet each other through a search, not all pairs.
+    monkeypatch.setattr(broadphase_module, 'ALL_PAIRS_UP_TO', all_pairs_up_to)
+    rng = np.random.default_rng(seed)
+    count = 300
+    # A crowded box; a few particles 20x faster than the rest (movers), a few
+    # large ones (queried on their own) and a few static ones.
+    speeds = np.where(rng.random(count) < 0.01, 20.0, 1.0)
+    direction = rng.normal(size=(count, 3))
+    velocity = direction / np.linalg.norm(direction, axis=1)[:, None] * speeds[:, None]
+    radius = np.where(rng.random(count) < 0.01, 0.4, rng.uniform(0.04, 0.06, count))
+    static = rng.random(count) < 0.02
+    velocity[static] = 0.0
+    particles = [{'position': rng.uniform(-1.5, 1.5, 3).tolist(),
+                  'velocity': velocity[k].tolist(), 'radius': float(radius[k]),
+                  'mass': float('inf') if static[k] else 1.0} for k in range(count)]
+    world = World(parse_scene({'dt': 0.005, 'particles': particles,
+                               'effects': {'walls': {'min': [-2, -2, -2], 'max': [2, 2, 2]}}},
+                              'verlet'))
+    at = [isinstance(stage, BroadphaseStage) for stage in world.pipeline.stages].index(True)
+    broadphase = world.pipeline.stages[at]
+    check = CheckCandidates()
+    world.pipeline.stages.insert(at + 1, check)
+    energy = world.kinetic_energy()
+    world.step(150)
+    # Every path of the stage ran: full searches, list reuse and mover patches.
+    assert 1 < broadphase.searches < 150 and broadphase.mover_updates > 0
+    assert check.overlaps_seen > 100
+    assert world.kinetic_energy() == pytest.approx(energy, rel=1e-12)
+
+
+def test_spawn_invalidates_the_list(world_from):
+    world = world_from(generate=[{'kind': 'gas', 'count': 100, 'radius': 0.05, 'mass': 1,
+                                  'speed': 0.1, 'seed': 4,
+                                  'region': {'min': [0, 0, 0], 'max': [2, 2, 2]}}])
+    check = CheckCandidates()
+    world.pipeline.stages.insert(2, check)
+    world.step(3)
+    # A particle spawned on top of particle 0 must be a candidate at once.
+    p0 = world.state.position[0].tolist()
+    world.spawn_text(f'{{position: {p0}, radius: 0.05, mass: 1}}')
+    world.step(1)
+    assert check.overlaps_seen >= 1
+
+
+def test_candidate_pairs_with_large_particles_match_brute_force():
+    rng = np.random.default_rng(5)
+    position = rng.uniform(-1, 1, (400, 3))
+    radius = rng.uniform(0.01, 0.03, 400)
+    radius[:4] = [0.5, 0.3, 1e-3, 0.8]
+    i, j = candidate_pairs(position, radius)
+    assert brute_force_overlaps(position, radius) <= set(zip(i.tolist(), j.tolist()))
+    assert np.all(i < j) and np.all(np.diff(i * 400 + j) > 0)
