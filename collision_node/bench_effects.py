@@ -3,9 +3,11 @@
     python -m collision_node.bench effects [--count N] [--steps K] [--repeats R]
     python -m collision_node.bench_effects [same options]
 
-Runs the same gas (default 10,000 particles, 3-D) under each effect
-configuration and prints the median wall time per step and its ratio to
-the gas without effects, as a Markdown table (the one in
+Runs the gas of ``scenes/gas_10k.yaml`` (10,000 particles of r = 5 cm,
+1 kg, 1 m/s in a 5 m cube, dt = 1/240 s, about 80 collisions per step;
+other counts keep its density) under each effect configuration and
+prints the median wall time per step and its ratio to the gas without
+effects, as a Markdown table (the one in
 docs/performance.md). The 'none' rows are the lecture pipeline, built
 from a scene without ``effects`` and from ``effects: {}``: an undeclared
 effect is not in the pipeline, so both must cost the same within noise.
@@ -24,30 +26,32 @@ from typing import Optional, Sequence
 from .scene import parse_scene
 from .world import World
 
-BOX = 30.0                                   # m, edge of the gas's cube
+REFERENCE_COUNT = 10_000
+REFERENCE_HALF = 2.5                         # m, half the side of gas_10k's cube
+WALLS = 'WALLS'                              # placeholder for the count's box
 CONFIGS: dict[str, Optional[dict]] = {
     'none (no effects key)': None,
     'none (effects: {})': {},
     'gravity': {'gravity': [0.0, -9.81, 0.0]},
-    'walls': {'walls': {'min': [0.0, 0.0, 0.0], 'max': [BOX, BOX, BOX]}},
+    'walls': {'walls': WALLS},
     'restitution 0.8': {'restitution': 0.8},
     'friction 0.3': {'friction': 0.3},
     'drag': {'drag': {'linear': 0.1, 'quadratic': 0.05}},
-    'all': {'gravity': [0.0, -9.81, 0.0],
-            'walls': {'min': [0.0, 0.0, 0.0], 'max': [BOX, BOX, BOX], 'restitution': 0.9},
-            'restitution': 0.8, 'friction': 0.3,
-            'drag': {'linear': 0.1, 'quadratic': 0.05}},
+    'all': {'gravity': [0.0, -9.81, 0.0], 'walls': WALLS, 'restitution': 0.8,
+            'friction': 0.3, 'drag': {'linear': 0.1, 'quadratic': 0.05}},
 }
 
 
 def gas_scene(count: int, effects: Optional[dict]) -> dict:
-    """Return the benchmark gas: ``count`` particles of r = 0.1 m at 2 m/s in a cube."""
-    scene = {'name': 'bench_gas', 'dimensions': 3, 'dt': 0.005,
-             'generate': [{'kind': 'gas', 'count': count, 'radius': 0.1, 'mass': 1.0,
-                           'speed': 2.0, 'seed': 1,
-                           'region': {'min': [0.0, 0.0, 0.0], 'max': [BOX, BOX, BOX]}}]}
+    """Return gas_10k's gas with ``count`` particles (same density) and ``effects``."""
+    half = REFERENCE_HALF * (count / REFERENCE_COUNT) ** (1.0 / 3.0)
+    box = {'min': [-half] * 3, 'max': [half] * 3}
+    scene = {'name': 'bench_gas', 'dimensions': 3, 'dt': 1.0 / 240.0,
+             'generate': [{'kind': 'gas', 'count': count, 'radius': 0.05, 'mass': 1.0,
+                           'speed': 1.0, 'seed': 7, 'region': box}]}
     if effects is not None:
-        scene['effects'] = effects
+        scene['effects'] = {key: (dict(box) if value == WALLS else value)
+                            for key, value in effects.items()}
     return scene
 
 
