@@ -395,6 +395,8 @@ class CollisionNode(Node):
             'wall_collisions': stats.wall_collisions,
             'collisions_per_second': collision_rate,
             'kinetic_energy': self.world.kinetic_energy(),
+            # Energy balance (see README, Effects): terms, losses per effect, error.
+            'energy': self.world.energy(),
             'momentum': self.world.momentum().tolist(),
             'publish_rate': self.publish_rate,
             'frame_id': self.frame_id,

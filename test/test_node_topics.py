@@ -112,6 +112,9 @@ def test_status_reports_the_world(node):
     status = node.next_status(lambda s: s['time'] > 0.0)
     assert status['particles'] == PARTICLES and status['scene'] == 'elastic_break'
     assert status['kinetic_energy'] == pytest.approx(0.5 * BALL_MASS * CUE_SPEED ** 2, rel=1e-9)
+    energy = status['energy']
+    assert energy['total'] == pytest.approx(status['kinetic_energy'], rel=1e-12)
+    assert abs(energy['balance_error']) <= 1e-9 * energy['start']
     assert status['error'] is None
 
 
