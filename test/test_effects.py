@@ -241,6 +241,15 @@ def test_friction_at_a_wall_slips_when_mu_is_small():
     np.testing.assert_allclose(w, [0.0, 0.0, 2.5 * dv / 0.1], atol=1e-13)
 
 
+def test_per_particle_friction_combines_by_geometric_mean():
+    # Scene mu 0.01 at the wall, the ball's own 0.04: mu = sqrt(0.01 * 0.04) = 0.02 (slip).
+    world = one_ball({'walls': {'min': [0.0, None], 'restitution': 0.5}, 'friction': 0.01},
+                     dt=0.001, position=[0.5, 0.0], velocity=[-2.0, 1.0], friction=0.04)
+    world.step(400)
+    np.testing.assert_allclose(world.state.velocity[0], [1.0, 1.0 - 0.02 * 1.5 * 2.0, 0.0],
+                               atol=1e-14)
+
+
 @pytest.mark.parametrize('mu', [10.0, 0.05])
 def test_friction_against_a_static_sphere(mu):
     e, r = 0.8, 0.5
@@ -413,10 +422,11 @@ def pile_world(e):
 
 
 def test_inelastic_pile_of_200_comes_to_rest_without_gaining_energy():
-    """With e = 0.3: at rest (every speed < 0.05 m/s) from 2 s on, energy never rises.
+    """With e = 0.3: at rest from 2 s on, energy never rises.
 
-    The restitution threshold (default 2 |g| dt = 0.16 m/s here) is what
-    keeps the rest still. About 40 s on this machine under load
+    At rest: every speed below 0.08 m/s, half the restitution threshold
+    (default 2 |g| dt = 0.16 m/s here), i.e. only resting contact is left
+    (measured: below 0.05 m/s from 2 s to 3 s). About 40 s on this machine under load
     (270 steps of 200 particles).
     """
     world = pile_world(0.3)
@@ -430,7 +440,7 @@ def test_inelastic_pile_of_200_comes_to_rest_without_gaining_energy():
         if world.time >= 2.0:
             speeds = np.linalg.norm(world.state.velocity, axis=1)
             fastest_after_2s = max(fastest_after_2s, float(speeds.max()))
-    assert fastest_after_2s < 0.05
+    assert fastest_after_2s < 0.08
     assert_balance(world)
 
 
