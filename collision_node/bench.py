@@ -17,6 +17,8 @@ from typing import Optional, Sequence
 # Subcommand name -> module with add_arguments(parser) and run(args).
 SUBCOMMANDS: dict[str, str] = {
     'throughput': 'collision_node.bench_throughput',
+    'node': 'collision_node.bench_node',
+    'effects': 'collision_node.bench_effects',
 }
 
 

@@ -39,3 +39,27 @@ def apply_normal_impulses(velocity: np.ndarray, inv_mass: np.ndarray, i: np.ndar
     np.add.at(velocity, i, (magnitude * w_i)[:, None] * normal)
     np.add.at(velocity, j, -(magnitude * w_j)[:, None] * normal)
     return approaching
+
+
+def apply_normal_impulses_booked(velocity: np.ndarray, inv_mass: np.ndarray, i: np.ndarray,
+                                 j: np.ndarray, normal: np.ndarray, restitution,
+                                 tolerance: float = 0.0
+                                 ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Like :func:`apply_normal_impulses`, also returning magnitudes and energy removed.
+
+    Pairs closing slower than ``tolerance`` count as not approaching, so
+    repeated sweeps stop on rounding-level residues. Pairs in one call
+    share no dynamic particle, so the kinetic energy removed is exact per
+    pair, j |vn| (1 - e) / 2 >= 0: no application ever adds energy.
+    Returns (mask of pairs hit, impulse magnitudes, energy removed in J).
+    """
+    vn = closing_speed(velocity, i, j, normal)
+    approaching = vn < -tolerance
+    if not np.any(approaching):
+        return approaching, np.zeros_like(vn), 0.0
+    w_i, w_j = inv_mass[i], inv_mass[j]
+    magnitude = np.where(approaching, -(1.0 + restitution) * vn / (w_i + w_j), 0.0)
+    np.add.at(velocity, i, (magnitude * w_i)[:, None] * normal)
+    np.add.at(velocity, j, -(magnitude * w_j)[:, None] * normal)
+    removed = 0.5 * float(np.sum(magnitude * -vn * (1.0 - restitution)))
+    return approaching, magnitude, removed

@@ -106,17 +106,33 @@ class Pipeline:
 def build_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
     """Assemble the stages a scene's effects and accuracy settings call for."""
     from .stages.broadphase import BroadphaseStage
+    from .stages.drag import DragStage
     from .stages.drift import DriftStage
+    from .stages.gravity import GravityStage
     from .stages.narrowphase import NarrowphaseStage
     from .stages.separation import SeparationStage
     from .stages.sequential_impulses import SequentialImpulseStage
+    from .stages.spin import SpinStage
     from .stages.walls import WallStage
 
-    # Gravity (effects issue) is parsed but its stage is still to come.
-    stages: list[Stage] = [DriftStage(), BroadphaseStage(), NarrowphaseStage(),
-                           SequentialImpulseStage(effects.particle_restitution,
-                                                  accuracy.iterations),
-                           SeparationStage()]
+    # Motion: free drift (the lecture), plus gravity's exact completion, or
+    # the closed-form drag step (which includes gravity when declared).
+    stages: list[Stage]
+    if effects.drag is not None:
+        stages = [DragStage(effects.drag, effects.gravity)]
+    else:
+        stages = [DriftStage()]
+        if effects.gravity is not None:
+            stages.append(GravityStage(effects.gravity))
+    if effects.spin:
+        stages.append(SpinStage())
     if effects.walls is not None:
-        stages.append(WallStage(effects.walls))
+        # Impacts at their time in the step; resting wall contact is then
+        # solved together with the pairs, and separation projects back inside.
+        stages.append(WallStage(effects.walls, friction=effects.friction))
+    stages += [BroadphaseStage(), NarrowphaseStage(),
+               SequentialImpulseStage(effects.particle_restitution, accuracy.iterations,
+                                      friction=effects.friction, walls=effects.walls,
+                                      gravity=effects.gravity),
+               SeparationStage(walls=effects.walls)]
     return Pipeline(stages)

@@ -18,7 +18,7 @@ from typing import Any, Optional, Union
 import yaml
 
 from .accuracy import AccuracySettings, parse_accuracy
-from .effects import Effects, parse_effects
+from .effects import Effects, check_particles_for_effects, parse_effects
 from .generate import generate_state, parse_generate
 from .particles import PARTICLE_KEYS, build_state, parse_particle
 from .state import ParticleState
@@ -154,6 +154,7 @@ def parse_scene(data: Any, source: str, default_name: str = 'scene') -> Scene:
     effects = parse_effects(data.get('effects'), f'{source}: effects', dimensions)
     state = parse_particle_section(data.get('particles'), data.get('generate'), source,
                                    dimensions, first_id=0)
+    check_particles_for_effects(state, effects, f'{source}: ')
     return Scene(name=name, dimensions=dimensions, dt=dt, duration=duration,
                  accuracy=accuracy, effects=effects, initial=state, source=source)
 

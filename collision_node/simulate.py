@@ -64,6 +64,11 @@ def particle_records(world: World) -> list[dict]:
             'radius': float(s.radius[k]),
             'mass': None if math.isinf(mass[k]) else float(mass[k]),
         })
+    if s.angular_velocity is not None:
+        # Spin exists only when the scene declares friction.
+        for k, record in enumerate(records):
+            record['angular_velocity'] = s.angular_velocity[k].tolist()
+            record['orientation'] = s.orientation[k].tolist()
     return records
 
 
@@ -102,12 +107,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     duration = scene.duration if args.duration is None else args.duration
     steps = args.steps if args.steps is not None else int(round(duration / scene.dt))
     energy_start, momentum_start = world.kinetic_energy(), world.momentum()
+    balance_start = world.energy()
     try:
         wall_seconds = run(world, steps)
     except NonFiniteStateError as error:
         print(f'simulate: error: {scene.name}: {error}', file=sys.stderr)
         return 1
     energy_end, momentum_end = world.kinetic_energy(), world.momentum()
+    balance_end = world.energy()
     result = {
         'scene': scene.name,
         'time': world.time,
@@ -119,6 +126,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             'kinetic_energy': [energy_start, energy_end],
             'momentum': [momentum_start.tolist(), momentum_end.tolist()],
             'dissipated': dict(world.stats.dissipated),
+            'energy': {'start': balance_start, 'end': balance_end},
             'max_penetration': world.stats.max_penetration,
             'wall_seconds': wall_seconds,
         },
@@ -139,6 +147,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
               f'{world.stats.wall_collisions} wall')
         print(f'kinetic energy: {energy_start:.12g} -> {energy_end:.12g} J '
               f'(change {d_energy:+.3g} J)')
+        if balance_end['dissipated'] or balance_end['potential']:
+            removed = ', '.join(f'{name} {value:.6g}'
+                                for name, value in balance_end['dissipated'].items())
+            print(f'energy (kinetic + potential): {balance_start["total"]:.12g} -> '
+                  f'{balance_end["total"]:.12g} J; removed by effects: {removed or "none"} J; '
+                  f'balance error {balance_end["balance_error"]:.3g} J')
         print(f'momentum change: {d_momentum:.3g} kg m/s; '
               f'max penetration: {world.stats.max_penetration:.3g} m')
     return 0

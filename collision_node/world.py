@@ -11,6 +11,8 @@ from typing import Optional
 
 import numpy as np
 
+from . import energy
+from .effects import check_particles_for_effects
 from .pipeline import StepContext, StepStats, build_pipeline
 from .scene import Scene, parse_spawn
 from .state import ParticleState
@@ -35,10 +37,24 @@ class World:
 
     def reset(self) -> None:
         """Return to the scene's initial state at time 0; drop spawned particles."""
-        self.state = self.scene.initial.copy()
+        self.state = self._with_spin_state(self.scene.initial.copy())
         self.steps = 0
         self.stats = StepStats()
         self.pipeline = build_pipeline(self.scene.effects, self.scene.accuracy)
+        self.energy_start = energy.mechanical(self.state, self.scene.effects.gravity)
+        self.energy_spawned = 0.0
+
+    def _with_spin_state(self, state: ParticleState) -> ParticleState:
+        """Give every particle spin and orientation iff the scene simulates spin."""
+        if not self.scene.effects.spin:
+            return state.with_arrays(angular_velocity=None, orientation=None)
+        n = len(state)
+        arrays = {}
+        if state.angular_velocity is None:
+            arrays['angular_velocity'] = np.zeros((n, 3))
+        if state.orientation is None:
+            arrays['orientation'] = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+        return state.with_arrays(**arrays) if arrays else state
 
     @property
     def dt(self) -> float:
@@ -67,7 +83,10 @@ class World:
     def _check_finite(self) -> None:
         """Raise instead of letting NaN or inf spread through the state."""
         s = self.state
-        if not (np.isfinite(s.position).all() and np.isfinite(s.velocity).all()):
+        finite = np.isfinite(s.position).all() and np.isfinite(s.velocity).all()
+        if s.angular_velocity is not None:
+            finite = finite and np.isfinite(s.angular_velocity).all()
+        if not finite:
             raise NonFiniteStateError(f'step {self.steps}: a position or velocity became '
                                       'non-finite')
 
@@ -78,9 +97,12 @@ class World:
             raise SceneError(f'spawn: {len(particles)} particles would make '
                              f'{len(self.state) + len(particles)}, over max_particles = '
                              f'{self.max_particles}')
+        check_particles_for_effects(particles, self.scene.effects, 'spawn: ')
         first = len(self.state)
         ids = np.arange(first, first + len(particles), dtype=np.int64)
-        self.state = self.state.concatenate(particles.with_arrays(ids=ids))
+        added = self._with_spin_state(particles.with_arrays(ids=ids))
+        self.state = self.state.concatenate(added)
+        self.energy_spawned += energy.mechanical(added, self.scene.effects.gravity)
         return ids
 
     def spawn_text(self, text: str, source: str = 'spawn') -> np.ndarray:
@@ -94,6 +116,25 @@ class World:
     def kinetic_energy(self) -> float:
         """Total kinetic energy in joules."""
         return self.state.kinetic_energy()
+
+    def energy(self) -> dict:
+        """Return the energy balance, J, as a JSON-ready mapping.
+
+        ``kinetic_linear``, ``kinetic_rotational``, ``potential`` (gravity,
+        zero at the origin) and their ``total`` now; ``start`` (at reset)
+        plus ``spawned`` (brought in by spawns); ``dissipated``, the energy
+        each effect removed (a negative entry added energy, e.g.
+        'separation' lifting particles under gravity); and
+        ``balance_error`` = total + sum(dissipated) - start - spawned, which
+        is zero up to rounding.
+        """
+        report = energy.breakdown(self.state, self.scene.effects.gravity)
+        dissipated = dict(self.stats.dissipated)
+        report.update(start=self.energy_start, spawned=self.energy_spawned,
+                      dissipated=dissipated,
+                      balance_error=report['total'] + sum(dissipated.values())
+                      - self.energy_start - self.energy_spawned)
+        return report
 
     def momentum(self) -> np.ndarray:
         """Total linear momentum in kg m/s."""

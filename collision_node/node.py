@@ -1,0 +1,487 @@
+"""The collision_node ROS 2 node: a live particle world on topics.
+
+The node owns timing and ROS I/O only: the physics is a core
+:class:`~collision_node.world.World`, and every numpy-to-message
+conversion lives in :mod:`msg_adapters`. Topics, QoS and parameters are
+tabled in the README (section "The ROS 2 node").
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections import deque
+from typing import Any, Optional
+
+import rclpy
+from geometry_msgs.msg import PoseArray, VelocityStamped
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                ParameterType, SetParametersResult)
+from rclpy.clock import Clock, ClockType
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock as ClockMsg
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Empty, String
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
+
+from msg_adapters import (clock_message, marker_array_bytes, point_cloud_bytes,
+                          pose_array_bytes, velocities_bytes)
+
+from .accuracy import parse_accuracy
+from .scene import Scene, load_scene, parse_scene_text
+from .validation import SceneError
+from .world import NonFiniteStateError, World
+
+NODE_NAME = 'collision_node'
+
+# State streams: reliable (a best-effort publisher sends nothing to default
+# subscribers), keep only the newest tick; a late tick is worth less than
+# the next one.
+STATE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                       reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.VOLATILE)
+# Velocities: one message per particle per tick, so the queue holds a tick's burst.
+VELOCITY_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
+                          reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.VOLATILE)
+# Commands and their answers: reliable with a deeper queue, none may be lost.
+COMMAND_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
+                         reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+# Status: the newest one, kept for late joiners (a viewer started later).
+STATUS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                        reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+STATUS_PERIOD = 0.5          # s of wall time between status messages
+RATE_WINDOW = 2.0            # s of wall time over which rates are measured
+STEP_BUDGET = 0.8            # share of a tick period the physics may use
+BACKLOG_KEPT = 0.25          # s of wall time the physics may lag once it fell behind
+
+
+# The embedded default scene: pool balls (SI) and the cue ball's speed.
+BALL_RADIUS = 0.028575
+BALL_MASS = 0.17
+CUE_SPEED = 5.0
+
+
+def default_scene_text() -> str:
+    """Return the embedded default scene: a 2-D billiards break (YAML).
+
+    Fifteen balls racked in a triangle and a cue ball at 5 m/s on an
+    elastic 2.54 m x 1.27 m table, dt = 1/240 s (the cue ball moves 0.4
+    radii per step): the first collision comes after about 0.25 s and the
+    balls keep colliding.
+    """
+    radius, mass = BALL_RADIUS, BALL_MASS
+    gap = 2.0 * radius * 1.001
+    lines = [
+        'name: elastic_break',
+        'dimensions: 2',
+        'dt: 0.004166666666666667',
+        'duration: 10.0',
+        'effects:',
+        '  walls: {min: [-1.27, -0.635], max: [1.27, 0.635]}',
+        'particles:',
+        f'  - {{position: [-0.635, 0.0], velocity: [{CUE_SPEED}, 0.0], radius: {radius}, '
+        f'mass: {mass}}}',
+    ]
+    for row in range(5):
+        for k in range(row + 1):
+            x = 0.635 + row * gap * math.sqrt(3.0) / 2.0
+            y = (k - row / 2.0) * gap
+            lines.append(f'  - {{position: [{x:.6f}, {y:.6f}], radius: {radius}, '
+                         f'mass: {mass}}}')
+    return '\n'.join(lines) + '\n'
+
+
+class Pacer:
+    """Count the fixed steps due so that simulated time follows wall time x factor.
+
+    Simulated time is anchored to a wall instant; the anchor moves whenever
+    the factor changes, the world resumes or is reset, or the physics fell
+    behind (so a backlog is never chased beyond BACKLOG_KEPT: the world
+    runs slower instead, stepping all the time it is given).
+    """
+
+    def __init__(self, dt: float, factor: float, wall: float, sim_time: float) -> None:
+        """Anchor simulated time ``sim_time`` at wall time ``wall``."""
+        self.dt = dt
+        self.factor = factor
+        self.restart(wall, sim_time)
+
+    def restart(self, wall: float, sim_time: float) -> None:
+        """Re-anchor: from ``wall`` on, simulated time starts at ``sim_time``."""
+        self.wall_anchor = wall
+        self.sim_anchor = sim_time
+
+    def steps_due(self, wall: float, sim_time: float) -> int:
+        """Return the whole steps needed to bring ``sim_time`` up to the target."""
+        target = self.sim_anchor + (wall - self.wall_anchor) * self.factor
+        # The small tolerance keeps float noise from deferring a step a tick.
+        return max(0, math.floor((target - sim_time) / self.dt + 1e-9))
+
+
+class RateMeter:
+    """Rates over the last few seconds of wall time from cumulative counters."""
+
+    def __init__(self, window: float = RATE_WINDOW) -> None:
+        """Keep samples no older than ``window`` seconds."""
+        self.window = window
+        self.samples: deque[tuple[float, float, float]] = deque()
+
+    def clear(self) -> None:
+        """Forget every sample (after a reset the counters restart)."""
+        self.samples.clear()
+
+    def add(self, wall: float, sim_time: float, collisions: float) -> None:
+        """Record cumulative simulated time and collisions at ``wall``."""
+        self.samples.append((wall, sim_time, collisions))
+        while len(self.samples) > 2 and wall - self.samples[0][0] > self.window:
+            self.samples.popleft()
+
+    def rates(self) -> tuple[float, float]:
+        """Return (real-time factor, collisions per wall second) over the window."""
+        if len(self.samples) < 2:
+            return 0.0, 0.0
+        (w0, s0, c0), (w1, s1, c1) = self.samples[0], self.samples[-1]
+        if w1 <= w0:
+            return 0.0, 0.0
+        return (s1 - s0) / (w1 - w0), (c1 - c0) / (w1 - w0)
+
+
+def _descriptor(description: str, kind: int, read_only: bool = False,
+                floats: Optional[tuple[float, float]] = None,
+                integers: Optional[tuple[int, int]] = None) -> ParameterDescriptor:
+    """Return a parameter descriptor with an optional inclusive range."""
+    descriptor = ParameterDescriptor(description=description, type=kind, read_only=read_only)
+    if floats is not None:
+        descriptor.floating_point_range = [
+            FloatingPointRange(from_value=floats[0], to_value=floats[1], step=0.0)]
+    if integers is not None:
+        descriptor.integer_range = [
+            IntegerRange(from_value=integers[0], to_value=integers[1], step=1)]
+    return descriptor
+
+
+PARAMETERS: dict[str, tuple[Any, ParameterDescriptor]] = {
+    'scene': ('', _descriptor(
+        'Scene file path or shipped scene name; empty: the embedded elastic billiards break',
+        ParameterType.PARAMETER_STRING, read_only=True)),
+    'accuracy': ('', _descriptor(
+        "Accuracy preset overriding the scene's accuracy setting; empty: the scene's",
+        ParameterType.PARAMETER_STRING, read_only=True)),
+    'real_time_factor': (1.0, _descriptor(
+        'Simulated seconds per wall second (runtime-changeable)',
+        ParameterType.PARAMETER_DOUBLE, floats=(0.001, 1000.0))),
+    'publish_rate': (30.0, _descriptor(
+        'Hz of wall time at which outputs and /clock are published (runtime-changeable)',
+        ParameterType.PARAMETER_DOUBLE, floats=(0.1, 1000.0))),
+    'paused': (False, _descriptor(
+        'Stop stepping; outputs keep being published (runtime-changeable)',
+        ParameterType.PARAMETER_BOOL)),
+    'publish_clock': (True, _descriptor(
+        'Publish simulated time on /clock (runtime-changeable)',
+        ParameterType.PARAMETER_BOOL)),
+    'frame_id': ('world', _descriptor(
+        'Frame of every output header (runtime-changeable)',
+        ParameterType.PARAMETER_STRING)),
+    'max_particles': (100_000, _descriptor(
+        'Most particles the world may hold; larger spawns are rejected',
+        ParameterType.PARAMETER_INTEGER, read_only=True, integers=(1, 10_000_000))),
+}
+
+
+class CollisionNode(Node):
+    """Steps a world in (scaled) real time and publishes it; takes spawn and reset."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        """Declare parameters, load the scene, create the ROS interfaces."""
+        super().__init__(NODE_NAME, **kwargs)
+        for name, (default, descriptor) in PARAMETERS.items():
+            self.declare_parameter(name, default, descriptor)
+        value = self._parameter_values()
+        problem = self._invalid(value)
+        if problem:
+            raise SceneError(f'parameter {problem}')
+        self.scene = self._load_scene(value['scene'])
+        if value['accuracy']:
+            self.scene = self.scene.with_accuracy(
+                parse_accuracy(value['accuracy'], 'parameter accuracy'))
+        self.world = World(self.scene, max_particles=value['max_particles'])
+        self.real_time_factor = value['real_time_factor']
+        self.publish_rate = value['publish_rate']
+        self.paused = value['paused']
+        self.publish_clock = value['publish_clock']
+        self.frame_id = value['frame_id']
+        self.failed: Optional[str] = None
+        self.keeping_up = True
+        self.behind_reported = False
+        self.pacer = Pacer(self.world.dt, self.real_time_factor, time.monotonic(),
+                           self.world.time)
+        self.meter = RateMeter()
+        self.meter.add(time.monotonic(), self.world.time, self._collisions())
+
+        self.pub_poses = self.create_publisher(PoseArray, 'particles/poses', STATE_QOS)
+        self.pub_velocities = self.create_publisher(VelocityStamped, 'particles/velocities',
+                                                    VELOCITY_QOS)
+        self.pub_state = self.create_publisher(PointCloud2, 'particles/state', STATE_QOS)
+        self.pub_markers = self.create_publisher(MarkerArray, 'particles/markers', STATE_QOS)
+        self.pub_clock = self.create_publisher(ClockMsg, '/clock', STATE_QOS)
+        self.pub_events = self.create_publisher(String, 'events', COMMAND_QOS)
+        self.pub_status = self.create_publisher(String, 'status', STATUS_QOS)
+        self.create_subscription(String, 'spawn', self._on_spawn, COMMAND_QOS)
+        self.create_subscription(Empty, 'reset', self._on_reset_topic, COMMAND_QOS)
+        self.create_service(Trigger, 'reset', self._on_reset_service)
+
+        # Timers run on the steady clock: the node lives in wall time even
+        # if somebody sets use_sim_time (it is the source of /clock).
+        self.steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.tick_timer = self.create_timer(1.0 / self.publish_rate, self._tick,
+                                            clock=self.steady)
+        self.status_timer = self.create_timer(STATUS_PERIOD, self._publish_status,
+                                              clock=self.steady)
+        self.add_on_set_parameters_callback(self._check_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+
+        self.get_logger().info(
+            f'scene {self.scene.name} ({self.scene.source}): {len(self.world.state)} particles, '
+            f'{self.scene.dimensions}-D, dt = {self.world.dt:g} s; publishing at '
+            f'{self.publish_rate:g} Hz, real-time factor {self.real_time_factor:g}'
+            f'{", paused" if self.paused else ""}')
+        self.get_logger().info('step pipeline:\n' + self.world.explain())
+        self._publish_status()
+
+    # -- parameters -------------------------------------------------------
+
+    def _parameter_values(self) -> dict[str, Any]:
+        """Return every declared parameter's current value."""
+        return {name: self.get_parameter(name).value for name in PARAMETERS}
+
+    @staticmethod
+    def _invalid(values: dict[str, Any]) -> Optional[str]:
+        """Return why a set of parameter values is invalid, or None."""
+        for name in ('real_time_factor', 'publish_rate'):
+            if name in values and not math.isfinite(values[name]):
+                return f'{name}: must be finite, got {values[name]!r}'
+        frame = values.get('frame_id')
+        if frame is not None and (not frame or frame != frame.strip() or ' ' in frame):
+            return f'frame_id: must be a non-empty name without spaces, got {frame!r}'
+        return None
+
+    def _check_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
+        """Refuse invalid values with a reason (types, ranges and read-only come first)."""
+        problem = self._invalid({p.name: p.value for p in parameters})
+        if problem:
+            self.get_logger().warning(f'refused parameter {problem}')
+            return SetParametersResult(successful=False, reason=problem)
+        return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, parameters: list[Parameter]) -> None:
+        """Apply accepted runtime changes at once."""
+        now = time.monotonic()
+        for p in parameters:
+            if p.name == 'real_time_factor':
+                self.real_time_factor = p.value
+                self.pacer.factor = p.value
+                self.pacer.restart(now, self.world.time)
+                self.keeping_up = True
+            elif p.name == 'publish_rate':
+                self.publish_rate = p.value
+                self.tick_timer.timer_period_ns = int(1e9 / p.value)
+            elif p.name == 'paused':
+                self.paused = p.value
+                self.pacer.restart(now, self.world.time)
+            elif p.name == 'publish_clock':
+                self.publish_clock = p.value
+            elif p.name == 'frame_id':
+                self.frame_id = p.value
+            self.get_logger().info(f'parameter {p.name} = {p.value!r}')
+        self._publish_status()
+
+    # -- scene ------------------------------------------------------------
+
+    def _load_scene(self, scene: str) -> Scene:
+        """Load the ``scene`` parameter, or the embedded default when empty."""
+        if scene:
+            return load_scene(scene)
+        return parse_scene_text(default_scene_text(), '<embedded elastic_break>',
+                                default_name='elastic_break')
+
+    # -- stepping and publishing ------------------------------------------
+
+    def _collisions(self) -> int:
+        """Particle and wall collisions so far."""
+        return self.world.stats.collisions + self.world.stats.wall_collisions
+
+    def _advance(self) -> None:
+        """Take the steps due, within this tick's budget; never drop one."""
+        start = time.monotonic()
+        due = self.pacer.steps_due(start, self.world.time)
+        deadline = start + STEP_BUDGET / self.publish_rate
+        done = 0
+        try:
+            while done < due:
+                self.world.step(1)
+                done += 1
+                if done < due and time.monotonic() > deadline:
+                    break
+        except NonFiniteStateError as error:
+            self.failed = str(error)
+            self.get_logger().error(f'stopped stepping: {error}; reset to go on')
+            return
+        if done < due:
+            # Behind: run slower than real time from here instead of chasing the
+            # whole backlog, but keep a little of it so that every tick has work
+            # at once (with none, the overdue next tick would find nothing due
+            # and the physics would idle while it is behind).
+            self.pacer.restart(time.monotonic() - BACKLOG_KEPT, self.world.time)
+            self.keeping_up = False
+            if not self.behind_reported:
+                self.behind_reported = True
+                self.get_logger().warning(
+                    f'cannot keep up with real-time factor {self.real_time_factor:g}: '
+                    f'{len(self.world.state)} particles at dt = {self.world.dt:g} s; running '
+                    'slower than requested (no step is dropped); see the status topic')
+        elif due:
+            self.keeping_up = True
+
+    def _tick(self) -> None:
+        """Step, then publish every output somebody subscribes to."""
+        if not self.paused and self.failed is None:
+            self._advance()
+        self.meter.add(time.monotonic(), self.world.time, self._collisions())
+        self.publish_outputs()
+
+    def publish_outputs(self) -> None:
+        """Publish the current state; all messages carry the same stamp and frame."""
+        s, t, frame = self.world.state, self.world.time, self.frame_id
+        if self.publish_clock:
+            self.pub_clock.publish(clock_message(t))
+        if self.pub_poses.get_subscription_count():
+            self.pub_poses.publish(pose_array_bytes(s.position, s.orientation, t, frame))
+        if self.pub_state.get_subscription_count():
+            self.pub_state.publish(point_cloud_bytes(s.ids, s.position, s.velocity, s.radius,
+                                                     s.inv_mass, t, frame))
+        if self.pub_markers.get_subscription_count():
+            self.pub_markers.publish(marker_array_bytes(s.position, s.radius, s.inv_mass, t,
+                                                        frame))
+        if self.pub_velocities.get_subscription_count():
+            publish = self.pub_velocities.publish
+            for message in velocities_bytes(s.ids, s.velocity, s.angular_velocity, t, frame):
+                publish(message)
+
+    def status(self) -> dict[str, Any]:
+        """Return the node's status as a JSON-ready mapping."""
+        rtf, collision_rate = self.meter.rates()
+        stats = self.world.stats
+        return {
+            'scene': self.scene.name,
+            'particles': len(self.world.state),
+            'time': self.world.time,
+            'steps': self.world.steps,
+            'dt': self.world.dt,
+            'paused': self.paused,
+            'real_time_factor': self.real_time_factor,
+            'measured_real_time_factor': rtf,
+            'keeping_up': self.keeping_up,
+            'collisions': stats.collisions,
+            'wall_collisions': stats.wall_collisions,
+            'collisions_per_second': collision_rate,
+            'kinetic_energy': self.world.kinetic_energy(),
+            # Energy balance (see README, Effects): terms, losses per effect, error.
+            'energy': self.world.energy(),
+            'momentum': self.world.momentum().tolist(),
+            'publish_rate': self.publish_rate,
+            'frame_id': self.frame_id,
+            'error': self.failed,
+        }
+
+    def _publish_status(self) -> None:
+        """Publish the status on ``status`` (JSON)."""
+        self.pub_status.publish(String(data=json.dumps(self.status())))
+
+    # -- commands ---------------------------------------------------------
+
+    def _event(self, event: dict[str, Any]) -> None:
+        """Answer a request on ``events`` (JSON)."""
+        self.pub_events.publish(String(data=json.dumps(event)))
+
+    def _on_spawn(self, msg: String) -> None:
+        """Add the requested particles atomically, or reject the whole request."""
+        try:
+            ids = self.world.spawn_text(msg.data, source='spawn')
+        except SceneError as error:
+            reason = str(error)
+        except Exception as error:  # noqa: B902 - a bad request must never stop the node
+            reason = f'spawn: {type(error).__name__}: {error}'
+        else:
+            self.get_logger().info(f'spawned {ids.size} particles (ids {ids[0]}..{ids[-1]})'
+                                   if ids.size else 'spawn request held no particles')
+            self._event({'request': 'spawn', 'accepted': True, 'ids': ids.tolist(),
+                         'particles': len(self.world.state)})
+            return
+        self.get_logger().warning(f'rejected {reason}')
+        self._event({'request': 'spawn', 'accepted': False, 'reason': reason,
+                     'particles': len(self.world.state)})
+
+    def reset_world(self, request: str) -> str:
+        """Return to the scene's initial state at time 0 and announce it."""
+        self.world.reset()
+        self.failed = None
+        now = time.monotonic()
+        self.pacer.restart(now, self.world.time)
+        self.meter.clear()
+        self.meter.add(now, self.world.time, self._collisions())
+        message = f'reset to {self.scene.name}: {len(self.world.state)} particles, time 0'
+        self.get_logger().info(message)
+        self._event({'request': request, 'accepted': True,
+                     'ids': self.world.state.ids.tolist(),
+                     'particles': len(self.world.state)})
+        self._publish_status()
+        return message
+
+    def _on_reset_topic(self, msg: Empty) -> None:
+        """Reset on a message on the ``reset`` topic."""
+        self.reset_world('reset')
+
+    def _on_reset_service(self, request: Trigger.Request,
+                          response: Trigger.Response) -> Trigger.Response:
+        """Reset on a ``reset`` service call and reply."""
+        response.message = self.reset_world('reset')
+        response.success = True
+        return response
+
+
+def main(args: Optional[list[str]] = None) -> int:
+    """Run the node until Ctrl-C, SIGTERM or shutdown; 0 on a clean exit, 2 on bad set-up."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = CollisionNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (SceneError, ParameterException) as error:
+        rclpy.logging.get_logger(NODE_NAME).error(' '.join(str(error).split()))
+        return 2
+    except Exception:
+        # A signal during start-up shuts the context down under the
+        # constructor; that is a requested exit, anything else is a bug.
+        if rclpy.ok():
+            raise
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
