@@ -308,6 +308,98 @@ def test_case06_dense_cluster_of_1000_resolves_without_explosion(preset, deep_pr
         assert max_penetration(world) < penetration0
 
 
+# 7. Resting contact under gravity -------------------------------------------------------
+
+G = 9.81
+
+
+@pytest.mark.parametrize('restitution', [0.0, 1.0])
+def test_case07_resting_column_of_20_never_gains_energy_and_rests(
+        preset, restitution, deep_profile):
+    """Twenty 5 cm balls stacked on a floor under gravity, e = 0 and e = 1.
+
+    Total energy (kinetic + potential) never rises at any step; from 0.5 s
+    on every speed is exactly 0 (measured: at rest from the first second,
+    the stack sinking 1.5 cm into itself, 1.5 mm per contact, and staying).
+    """
+    radius = 0.05
+    world = build(preset, [ball([0, radius + 2 * radius * k], radius, 1.0, [0, 0])
+                           for k in range(20)],
+                  dimensions=2, dt=1.0 / 240.0,
+                  effects={'gravity': [0, -G], 'walls': {'min': [None, 0.0]},
+                           'restitution': restitution})
+    previous = world.energy()['total']
+    for _ in range(480 if deep_profile else 240):
+        world.step()
+        total = world.energy()['total']
+        assert total <= previous + 1e-12 * abs(previous)
+        previous = total
+        if world.time >= 0.5:
+            assert np.max(np.abs(world.state.velocity)) <= 1e-9
+    assert_finite(world)
+    assert max_penetration(world) <= 0.002
+    x = world.state.position[:, 0]
+    np.testing.assert_array_equal(x, 0.0)                      # still a column
+
+
+# 13. Supported bounce --------------------------------------------------------------------
+
+def supported_bounce(preset: str, column: int, restitution: float) -> float:
+    """Drop a ball 0.5 m onto a column of resting balls; return rebound / impact speed."""
+    radius, drop = 0.05, 0.5
+    particles = [ball([0, radius + 2 * radius * k], radius, 1.0, [0, 0]) for k in range(column)]
+    particles.append(ball([0, 2 * radius * column + radius + drop], radius, 1.0, [0, 0]))
+    world = build(preset, particles, dimensions=2, dt=1.0 / 240.0,
+                  effects={'gravity': [0, -G], 'restitution': restitution,
+                           'walls': {'min': [None, 0.0], 'restitution': restitution}})
+    rebound = 0.0
+    for _ in range(120):                                   # impact at 0.32 s
+        world.step()
+        rebound = max(rebound, float(world.state.velocity[-1, 1]))
+    assert_finite(world)
+    return rebound / np.sqrt(2.0 * G * drop)
+
+
+@pytest.mark.parametrize('restitution', [1.0, 0.5])
+def test_case13_supported_bounce_never_exceeds_the_impact(preset, restitution):
+    """A ball dropped on 0, 1, 2, 3 resting balls: rebound <= 1.01 x e x impact speed.
+
+    On the bare floor the measured restitution is e (to 2 %). Documented
+    defect (docs/stability.md): on a column it does NOT stay e. The
+    restitution threshold is applied to closing speeds before the solve,
+    so the resting contacts below (the floor, the lower pairs) count as
+    e = 0 even when the impact reaches them within the solve: at e = 1 the
+    ball stops dead on 1, 2 or 3 balls (measured 0, 0, 0; the floor takes
+    the energy as 'walls'). Asserted here: it never bounces higher.
+    """
+    ratios = [supported_bounce(preset, column, restitution) for column in range(4)]
+    assert max(ratios) <= 1.01 * restitution + 1e-9
+    assert ratios[0] >= 0.98 * restitution
+
+
+# 14. Two-ball drop -----------------------------------------------------------------------
+
+@pytest.mark.parametrize('dt', [1.0 / 240.0, 1.0 / 1000.0], ids=['240Hz', '1000Hz'])
+def test_case14_two_ball_drop_small_ball_leaves_at_3r_minus_1_over_r_plus_1(preset, dt):
+    """A 1 kg ball resting on a 10 kg one, dropped 1 m onto an elastic floor.
+
+    Sequential impacts: the big ball bounces first, then meets the small
+    one still falling, which leaves at (3r - 1)/(r + 1) = 29/11 times the
+    impact speed. Tolerance 0.5 % (measured 0.22 % at 240 Hz, 0.04 % at
+    1000 Hz: gravity acts during the step of the impacts).
+    """
+    r, big, small, height = 10.0, 0.1, 0.05, 1.0
+    world = build(preset, [ball([0, height + big], big, r, [0, 0]),
+                           ball([0, height + 2 * big + small], small, 1.0, [0, 0])],
+                  dimensions=2, dt=dt, effects={'gravity': [0, -G], 'walls': {'min': [None, 0.0]}})
+    launch = 0.0
+    for _ in range(int(0.7 / dt)):
+        world.step()
+        launch = max(launch, float(world.state.velocity[1, 1]))
+    assert_finite(world)
+    assert launch / np.sqrt(2.0 * G * height) == pytest.approx((3 * r - 1) / (r + 1), rel=5e-3)
+
+
 # 8. Scale extremes ------------------------------------------------------------------------
 
 def test_case08_scale_extremes_in_one_scene(preset):
