@@ -105,18 +105,31 @@ class Pipeline:
 
 def build_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
     """Assemble the stages a scene's effects and accuracy settings call for."""
+    from .stages.batched_impulses import BatchedImpulseStage
     from .stages.broadphase import BroadphaseStage
     from .stages.drift import DriftStage
+    from .stages.event_driven import EventDrivenStage
     from .stages.narrowphase import NarrowphaseStage
     from .stages.separation import SeparationStage
     from .stages.sequential_impulses import SequentialImpulseStage
+    from .stages.swept_contacts import SweptContactStage
     from .stages.walls import WallStage
 
+    if accuracy.mode == 'event':
+        # Exact event-driven mode: one stage moves the world impact to impact.
+        return Pipeline([EventDrivenStage(effects, accuracy)])
     # Gravity (effects issue) is parsed but its stage is still to come.
-    stages: list[Stage] = [DriftStage(), BroadphaseStage(), NarrowphaseStage(),
-                           SequentialImpulseStage(effects.particle_restitution,
-                                                  accuracy.iterations),
-                           SeparationStage()]
+    stages: list[Stage]
+    if accuracy.ccd:
+        stages = [SweptContactStage(effects.particle_restitution, effects.walls,
+                                    accuracy.ordering, accuracy.iterations),
+                  NarrowphaseStage()]
+    else:
+        solver = SequentialImpulseStage if accuracy.ordering == 'sequential' \
+            else BatchedImpulseStage
+        stages = [DriftStage(), BroadphaseStage(), NarrowphaseStage(),
+                  solver(effects.particle_restitution, accuracy.iterations)]
+    stages.append(SeparationStage())
     if effects.walls is not None:
         stages.append(WallStage(effects.walls))
     return Pipeline(stages)
