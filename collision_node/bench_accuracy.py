@@ -312,16 +312,20 @@ def plot(results: list[dict], path: Path) -> None:
     names = [n for n in dict.fromkeys(r['scene'] for r in results) if n != 'gas_10k_cost']
     floor = 1e-17
     errors = [('position_error', 'position error vs exact (m)'),
-              ('energy_rel_error', 'relative energy error')]
+              ('energy_rel_error', 'relative energy error'),
+              ('missed', 'missed collisions (pairs + walls)')]
     colours = {'fast': 'tab:red', 'balanced': 'tab:blue', 'accurate': 'tab:green',
                'exact': 'black'}
-    fig, axes = plt.subplots(len(errors), len(names), figsize=(3.4 * len(names), 6.4),
+    fig, axes = plt.subplots(len(errors), len(names), figsize=(3.4 * len(names), 9.0),
                              squeeze=False)
     for col, name in enumerate(names):
         runs = [r for r in results if r['scene'] == name]
         for row, (key, label) in enumerate(errors):
             ax = axes[row][col]
-            pts = [(r['wall_s_per_sim_s'], max(r[key] or 0.0, floor)) for r in runs]
+            values = [(r['missed_pairs'] or 0) + (r['missed_walls'] or 0) if key == 'missed'
+                      else r[key] or 0.0 for r in runs]
+            low = 0.5 if key == 'missed' else floor
+            pts = [(r['wall_s_per_sim_s'], max(value, low)) for r, value in zip(runs, values)]
             for r, (x, y) in zip(runs, pts):
                 preset = r['accuracy'] if r['accuracy'] in colours else 'fast'
                 marker = 'o' if r['accuracy'] in colours else 'x'
@@ -346,7 +350,7 @@ def plot(results: list[dict], path: Path) -> None:
             ax.tick_params(labelsize=6)
     axes[0][0].legend(fontsize=6, loc='best')
     fig.suptitle('Accuracy vs time cost (o: presets, x: fast with batched ordering; '
-                 f'errors of 0 drawn at {floor:g})', fontsize=9)
+                 f'errors of 0 drawn at {floor:g}, 0 missed at 0.5)', fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=130)
     plt.close(fig)
