@@ -122,7 +122,8 @@ def build_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
     stages: list[Stage]
     if accuracy.ccd:
         stages = [SweptContactStage(effects.particle_restitution, effects.walls,
-                                    accuracy.ordering, accuracy.iterations),
+                                    accuracy.ordering, accuracy.iterations,
+                                    accuracy.requery),
                   NarrowphaseStage()]
     else:
         solver = SequentialImpulseStage if accuracy.ordering == 'sequential' \

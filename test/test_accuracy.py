@@ -47,6 +47,7 @@ def test_presets_are_documented_sets_and_override_key_by_key():
     assert not parse_accuracy('fast', 'x').ccd
     custom = parse_accuracy({'preset': 'fast', 'ccd': True, 'substeps': 3}, 'x')
     assert custom == AccuracySettings(ccd=True, substeps=3, iterations=8)
+    assert parse_accuracy('accurate', 'x').requery and not parse_accuracy(None, 'x').requery
     assert parse_accuracy({'ordering': 'batched'}, 'x').ccd  # based on balanced
 
 
@@ -226,6 +227,24 @@ def test_fast_gas_without_ccd_does_tunnel():
         w.step()
         missed += sum(missed_collisions(before, w.state, w.scene.effects.walls))
     assert missed > 0
+
+
+def test_requery_finds_contacts_of_particles_sped_up_by_an_impact():
+    """A heavy ball hits a light one, which reaches a third ball outside its query."""
+    balls = [{'position': [0.0, 0, 0], 'velocity': [1.0, 0, 0], 'radius': 0.1, 'mass': 1e6},
+             {'position': [0.21, 0, 0], 'radius': 0.1, 'mass': 1.0},
+             {'position': [0.55, 0, 0], 'radius': 0.1, 'mass': 1.0}]
+    # The light ball, hit at t = 0.01 s, leaves at about 2 m/s and reaches the
+    # third (outside its query: it was at rest) at t = 0.075 s, inside the step.
+    late = world('balanced', dt=0.12, particles=balls)
+    late.step()
+    gap = np.linalg.norm(late.state.position[1] - late.state.position[2]) - 0.2
+    assert late.stats.collisions == 1 and gap < -0.05   # found only at the next step
+    full = world({'requery': True}, dt=0.12, particles=balls)
+    full.step()
+    assert full.stats.collisions == 2
+    assert np.linalg.norm(full.state.position[1] - full.state.position[2]) > 0.2 - 1e-12
+    np.testing.assert_allclose(full.state.velocity[2, 0], 2.0 - 2e-6, rtol=1e-5)
 
 
 def test_balanced_elastic_gas_keeps_energy_for_ten_seconds():

@@ -20,9 +20,14 @@ time at both of its particles, so simultaneous impacts on one particle are
 solved at once (Jacobi). Finally every particle drifts to the end of the
 step with its last velocity.
 
-An event found after an earlier one changed a neighbour's path, and
-overlap left when the round budget runs out, are picked up as immediate
-impacts (or by the separation stage) rather than passed through.
+With ``requery`` (preset ``accurate``), a particle that an impact sends
+out of the ball its broadphase query covered (its mid-step position,
+radius |v| dt / 2) is queried again for the rest of its path
+(``_Escapes``); without it, such a particle's contacts outside its list
+are found at the next step, as overlaps. An event found after an earlier one
+changed a neighbour's path, and overlap left when the round budget runs
+out, are picked up as immediate impacts (or by the separation stage)
+rather than passed through.
 """
 
 from __future__ import annotations
@@ -84,14 +89,89 @@ def wall_impact_times(position: np.ndarray, velocity: np.ndarray, radius: np.nda
     return times
 
 
+class _Escapes:
+    """Candidate pairs for particles an impact sent out of their swept ball.
+
+    The broadphase covers each particle's path inside the ball around its
+    mid-step position with radius |v| dt / 2. An impact can speed a
+    particle up so that the rest of its path leaves that ball; such a
+    particle is queried again, for the rest of its path, against every
+    particle's ball (and against the other escaped particles directly).
+    """
+
+    def __init__(self, centre: np.ndarray, half: np.ndarray, radius: np.ndarray,
+                 n: int) -> None:
+        """Keep every particle's swept ball; the tree is built on first need."""
+        self.centre, self.half, self.radius = centre, half, radius
+        self.escaped = np.zeros(n, dtype=bool)
+        self.mid = np.zeros((n, 3))
+        self.own = np.zeros(n)
+        self.tree = None
+        self.known: Optional[np.ndarray] = None
+        self.n = n
+
+    def new_pairs(self, x: np.ndarray, v: np.ndarray, local_time: np.ndarray, dt: float,
+                  changed: np.ndarray, a: np.ndarray, b: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """Return candidate pairs (i < j) not in (a, b) for newly escaped particles."""
+        moved = np.flatnonzero(changed & ~self.escaped)
+        if not moved.size:
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+        rest = (dt - local_time[moved])[:, None]
+        end = x[moved] + v[moved] * rest
+        limit = self.half[moved] * (1.0 + 1e-12)
+        # The rest of the path is a segment: inside the ball iff both ends are.
+        inside = (np.linalg.norm(x[moved] - self.centre[moved], axis=1) <= limit) & \
+            (np.linalg.norm(end - self.centre[moved], axis=1) <= limit)
+        fresh = moved[~inside]
+        if not fresh.size:
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+        from scipy.spatial import cKDTree
+        if self.tree is None:
+            self.tree = cKDTree(self.centre)
+        reach = self.radius + self.half
+        rest = (dt - local_time[fresh])[:, None]
+        mid = x[fresh] + v[fresh] * (0.5 * rest)
+        own = self.radius[fresh] + np.linalg.norm(v[fresh], axis=1) * (0.5 * rest[:, 0])
+        hits = self.tree.query_ball_point(mid, own + float(reach.max()))
+        counts = np.fromiter((len(h) for h in hits), dtype=np.int64, count=len(hits))
+        i = np.repeat(fresh, counts)
+        j = np.concatenate([np.asarray(h, dtype=np.int64) for h in hits]) if counts.sum() \
+            else np.zeros(0, dtype=np.int64)
+        near = np.linalg.norm(np.repeat(mid, counts, axis=0) - self.centre[j], axis=1) <= \
+            np.repeat(own, counts) + reach[j]
+        i, j = i[near], j[near]
+        # Escaped particles left their balls too: pair them with each other
+        # when the balls of the rest of their paths meet.
+        self.escaped[fresh] = True
+        self.mid[fresh], self.own[fresh] = mid, own
+        others = np.flatnonzero(self.escaped)
+        gap = np.linalg.norm(mid[:, None, :] - self.mid[others][None, :, :], axis=2)
+        close_f, close_o = np.nonzero(gap <= own[:, None] + self.own[others][None, :])
+        i = np.concatenate([i, fresh[close_f]])
+        j = np.concatenate([j, others[close_o]])
+        keep = i != j
+        lo, hi = np.minimum(i[keep], j[keep]), np.maximum(i[keep], j[keep])
+        key = np.unique(lo * self.n + hi)
+        if self.known is None:
+            self.known = np.sort(a * self.n + b)
+        pos = np.searchsorted(self.known, key)
+        new = (pos >= self.known.size) | \
+            (self.known[np.minimum(pos, self.known.size - 1)] != key)
+        key, pos = key[new], pos[new]
+        self.known = np.insert(self.known, pos, key)
+        return key // self.n, key % self.n
+
+
 class SweptContactStage(Stage):
     """Move particles through the step, stopping at each impact in time order."""
 
     name = 'swept_contacts'
 
     def __init__(self, restitution: float, walls: Optional[Walls], ordering: str,
-                 rounds: int) -> None:
-        """Keep the restitution, the box, the ordering and the round budget."""
+                 rounds: int, requery: bool = False) -> None:
+        """Keep the restitution, the box, the ordering, the round budget, requery."""
+        self.requery = requery
         self.restitution = restitution
         self.walls = walls
         self.ordering = ordering
@@ -107,8 +187,10 @@ class SweptContactStage(Stage):
         # (|v_i| + |v_j|) dt / 2 of its mid-step offset, so reach r + |v| dt / 2
         # finds every pair that can touch during the step (half the radius of
         # a query at the start with r + |v| dt, an eighth of the volume).
-        pair_i, pair_j = candidate_pairs(x + v * (0.5 * dt), s.radius + speed * (0.5 * dt))
+        centre, half = x + v * (0.5 * dt), speed * (0.5 * dt)
+        pair_i, pair_j = candidate_pairs(centre, s.radius + half)
         ctx.pair_i, ctx.pair_j = pair_i, pair_j
+        escapes = _Escapes(centre, half, s.radius, n) if self.requery else None
         movable = dynamic[pair_i] | dynamic[pair_j]
         a, b = pair_i[movable], pair_j[movable]
         dissipative = self.restitution < 1.0 or (self.walls is not None
@@ -142,6 +224,12 @@ class SweptContactStage(Stage):
             self._resolve_pairs(ctx, a[pairs], b[pairs], pair_time[pairs], local_time, changed)
             if wall_hits.size:
                 self._resolve_walls(ctx, wall_hits, wall_time[wall_hits], local_time, changed)
+            if escapes is None:
+                continue
+            extra_a, extra_b = escapes.new_pairs(x, v, local_time, dt, changed, a, b)
+            if extra_a.size:
+                a, b = np.concatenate([a, extra_a]), np.concatenate([b, extra_b])
+                pair_time = np.concatenate([pair_time, np.full(extra_a.size, np.inf)])
         x[dynamic] += v[dynamic] * (dt - local_time[dynamic])[:, None]
         if dissipative:
             ctx.stats.add_dissipated('restitution', energy_before - s.kinetic_energy())
@@ -213,4 +301,5 @@ class SweptContactStage(Stage):
         """Say what the stage does."""
         return (f'swept broadphase (mid-step, reach r + |v| dt/2), impacts at their time '
                 f'of impact, {self.ordering} in time order, e = {self.restitution:g}, '
-                f'up to {self.rounds} rounds, then drift to the step end')
+                f'up to {self.rounds} rounds{", requery escaped paths" if self.requery else ""}, '
+                'then drift to the step end')
