@@ -19,6 +19,7 @@ SUBCOMMANDS: dict[str, str] = {
     'throughput': 'collision_node.bench_throughput',
     'node': 'collision_node.bench_node',
     'effects': 'collision_node.bench_effects',
+    'accuracy': 'collision_node.bench_accuracy',
 }
 
 

@@ -83,9 +83,10 @@ class Stage:
 class Pipeline:
     """An ordered list of stages run once per (sub)step."""
 
-    def __init__(self, stages: list[Stage]) -> None:
-        """Keep the stages in the order they will run."""
+    def __init__(self, stages: list[Stage], note: str = '') -> None:
+        """Keep the stages in the order they will run, and why they were chosen."""
         self.stages = stages
+        self.note = note
 
     @property
     def names(self) -> list[str]:
@@ -99,25 +100,59 @@ class Pipeline:
 
     def explain(self) -> str:
         """Return the pipeline as numbered lines, one per stage."""
-        return '\n'.join(f'{k + 1}. {stage.name}: {stage.describe()}'
-                         for k, stage in enumerate(self.stages))
+        lines = [f'{k + 1}. {stage.name}: {stage.describe()}'
+                 for k, stage in enumerate(self.stages)]
+        if self.note:
+            lines.append(f'note: {self.note}')
+        return '\n'.join(lines)
+
+
+def swept_contacts_cover(effects: Effects) -> bool:
+    """Say whether the ccd stage simulates every declared effect.
+
+    It moves particles on straight lines and knows walls and restitution;
+    under gravity, drag or friction (curved paths, tangential impulses,
+    resting-contact threshold) a step falls back to discrete contacts,
+    whose stages implement those effects, and ``explain`` shows it.
+    """
+    return (effects.gravity is None and effects.drag is None and effects.friction is None
+            and effects.restitution_threshold is None)
+
+
+def batched_covers(effects: Effects) -> bool:
+    """Say whether the batched solver simulates every declared effect (as for ccd)."""
+    return swept_contacts_cover(effects)
 
 
 def build_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
     """Assemble the stages a scene's effects and accuracy settings call for."""
+    from .stages.batched_impulses import BatchedImpulseStage
     from .stages.broadphase import BroadphaseStage
     from .stages.drag import DragStage
     from .stages.drift import DriftStage
+    from .stages.event_driven import EventDrivenStage
     from .stages.gravity import GravityStage
     from .stages.narrowphase import NarrowphaseStage
     from .stages.separation import SeparationStage
     from .stages.sequential_impulses import SequentialImpulseStage
     from .stages.spin import SpinStage
+    from .stages.swept_contacts import SweptContactStage
     from .stages.walls import WallStage
 
-    # Motion: free drift (the lecture), plus gravity's exact completion, or
-    # the closed-form drag step (which includes gravity when declared).
-    stages: list[Stage]
+    if accuracy.mode == 'event':
+        # Exact event-driven mode: one stage moves the world impact to impact.
+        return Pipeline([EventDrivenStage(effects, accuracy)])
+    if accuracy.ccd and swept_contacts_cover(effects):
+        # Continuous detection: straight paths inside the step, impacts at
+        # their time of impact (walls included), then the leftover overlap.
+        stages: list[Stage] = [
+            SweptContactStage(effects.particle_restitution, effects.walls, accuracy.ordering,
+                              accuracy.iterations, accuracy.requery),
+            NarrowphaseStage(), SeparationStage(walls=effects.walls)]
+        return Pipeline(stages)
+    # Discrete detection at the step end (the lecture's test), with every effect.
+    # Motion: free drift, plus gravity's exact completion, or the closed-form
+    # drag step (which includes gravity when declared).
     if effects.drag is not None:
         stages = [DragStage(effects.drag, effects.gravity)]
     else:
@@ -130,9 +165,19 @@ def build_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
         # Impacts at their time in the step; resting wall contact is then
         # solved together with the pairs, and separation projects back inside.
         stages.append(WallStage(effects.walls, friction=effects.friction))
-    stages += [BroadphaseStage(), NarrowphaseStage(),
-               SequentialImpulseStage(effects.particle_restitution, accuracy.iterations,
-                                      friction=effects.friction, walls=effects.walls,
-                                      gravity=effects.gravity),
+    notes = []
+    if accuracy.ccd:
+        notes.append('ccd asked for, but gravity, drag, friction or a restitution threshold '
+                     'is declared: contacts are detected at the step end')
+    if accuracy.ordering == 'batched' and batched_covers(effects):
+        solver: Stage = BatchedImpulseStage(effects.particle_restitution, accuracy.iterations)
+    else:
+        if accuracy.ordering == 'batched':
+            notes.append('batched ordering needs the same effects as ccd: contacts are '
+                         'solved sequentially')
+        solver = SequentialImpulseStage(effects.particle_restitution, accuracy.iterations,
+                                        friction=effects.friction, walls=effects.walls,
+                                        gravity=effects.gravity)
+    stages += [BroadphaseStage(), NarrowphaseStage(), solver,
                SeparationStage(walls=effects.walls)]
-    return Pipeline(stages)
+    return Pipeline(stages, note='; '.join(notes))

@@ -17,7 +17,7 @@ from typing import Any, Optional, Union
 
 import yaml
 
-from .accuracy import AccuracySettings, parse_accuracy
+from .accuracy import AccuracySettings, check_event_mode, parse_accuracy
 from .effects import Effects, check_particles_for_effects, parse_effects
 from .generate import generate_state, parse_generate
 from .particles import PARTICLE_KEYS, build_state, parse_particle
@@ -152,6 +152,7 @@ def parse_scene(data: Any, source: str, default_name: str = 'scene') -> Scene:
                       minimum=0.0)
     accuracy = parse_accuracy(data.get('accuracy'), f'{source}: accuracy')
     effects = parse_effects(data.get('effects'), f'{source}: effects', dimensions)
+    check_event_mode(accuracy, effects, f'{source}: accuracy')
     state = parse_particle_section(data.get('particles'), data.get('generate'), source,
                                    dimensions, first_id=0)
     check_particles_for_effects(state, effects, f'{source}: ')

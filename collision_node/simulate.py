@@ -17,6 +17,7 @@ from typing import Optional, Sequence
 import numpy as np
 from tqdm import tqdm
 
+from .accuracy import parse_accuracy_text
 from .scene import load_scene
 from .validation import SceneError
 from .world import NonFiniteStateError, World
@@ -48,6 +49,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument('--explain', action='store_true',
                         help='print the step pipeline and exit')
     parser.add_argument('--quiet', action='store_true', help='no summary on stdout')
+    parser.add_argument('--accuracy', help='preset (fast, balanced, accurate, exact) or a '
+                        'YAML/JSON mapping such as "{preset: fast, substeps: 2}"; '
+                        'overrides the scene\'s accuracy')
     return parser
 
 
@@ -97,6 +101,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                                               and args.duration >= 0):
             raise UsageError(f'--duration must be a finite number >= 0, got {args.duration}')
         scene = load_scene(args.scene)
+        if args.accuracy is not None:
+            scene = scene.with_accuracy(parse_accuracy_text(args.accuracy, scene.effects,
+                                                            '--accuracy'))
         world = World(scene)
     except (UsageError, SceneError) as error:
         print(f'simulate: error: {error}', file=sys.stderr)

@@ -1,0 +1,323 @@
+"""Exact event-driven mode (``mode: event``, preset ``exact``).
+
+Between impacts every particle moves on a closed-form path,
+x(t) = x0 + v0 t + g t^2 / 2, so the world can jump from impact to impact
+instead of stepping:
+
+- two particles share the same g, so their relative motion is a straight
+  line and their impact time is the smaller root of |d + u s| = r1 + r2
+  (the same quadratic as ``swept_contacts.pair_impact_times``);
+- a wall is reached when a quadratic in s (the gap to the wall) falls
+  to zero; the root is taken in its cancellation-free form.
+
+Impact times and post-impact states are therefore exact to round-off; the
+velocity update is the lecture's impulse along the line of action at
+contact (``impulse.apply_normal_impulses``).
+
+Bookkeeping: each particle stores its state at its own reference time; a
+heap holds predicted events, each stamped with the change counters of its
+particles, so an event whose particle changed since is skipped when popped
+(lazy invalidation). Neighbours come from a hash grid of cells at least one
+contact diameter wide (and wide enough for about eight particles per cell,
+so cell crossings stay rare); crossing a cell is itself an event. An event
+touches one or two particles: it re-predicts only them, vectorised against
+the particles of the 3^d neighbouring cells. At the end of each step every
+particle is brought to the step's end time (one vectorised update) so the
+world's state is a snapshot like in step mode.
+
+Inelastic collapse (infinitely many impacts in finite time when e < 1) is
+stopped with the TC model: an impact within ``collapse_time`` (t_c) of
+either particle's previous impact is elastic. A particle resting on a wall
+with gravity pushing it in would hit the wall again at once with zero
+speed; in that collapse regime it leaves the wall at g t_c / 2, so it hops
+with a period of t_c (a known price of the TC model: about 1/t_c events per
+second, and at most m (g t_c)^2 / 8 J added once, booked as negative
+``walls`` dissipation).
+
+Scenes with an effect other than particles, walls, restitution and gravity
+are refused (:func:`collision_node.accuracy.check_event_mode`), and so are
+static particles (mass .inf) under gravity, whose relative motion against a
+falling particle is not a straight line.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+from typing import Optional
+
+import numpy as np
+
+from ..accuracy import AccuracySettings, check_event_mode
+from ..effects import Effects
+from ..impulse import apply_normal_impulses
+from ..pipeline import Stage, StepContext
+from ..state import ParticleState
+from ..validation import SceneError
+from .narrowphase import line_of_action
+from .swept_contacts import pair_impact_times
+
+PAIR, WALL, CELL = 0, 1, 2
+# Cells hold about this many particles: fewer means more cell crossings,
+# more means longer candidate lists per prediction.
+PARTICLES_PER_CELL = 8.0
+
+
+def entering_time(gap: np.ndarray, rate: np.ndarray, curvature: np.ndarray) -> np.ndarray:
+    """Return the first s >= 0 at which gap + rate s + curvature s^2 / 2 falls to 0.
+
+    ``gap`` >= 0 is inside; a gap at or below zero that is closing (or not
+    opening while pushed in) counts as now. inf where it never happens.
+    """
+    disc = rate * rate - 2.0 * curvature * gap
+    root = np.sqrt(np.maximum(disc, 0.0))
+    closing = rate < 0.0
+    curved = curvature != 0.0
+    # The entering root has slope -sqrt(disc); take its cancellation-free form.
+    quadratic = np.where(closing, 2.0 * gap / np.where(closing, root - rate, 1.0),
+                         (-rate - root) / np.where(curved, curvature, 1.0))
+    linear = np.where(closing, gap / np.where(closing, -rate, 1.0), np.inf)
+    s = np.where(curved, np.where(disc >= 0.0, quadratic, np.inf), linear)
+    s[~(s > 0.0)] = np.inf
+    s[(gap <= 0.0) & (closing | ((rate == 0.0) & (curvature < 0.0)))] = 0.0
+    return s
+
+
+def _energy(state: ParticleState, index: np.ndarray) -> float:
+    """Linear kinetic energy of the (dynamic) particles in ``index``."""
+    dyn = index[state.inv_mass[index] > 0.0]
+    v = state.velocity[dyn]
+    return 0.5 * float(np.sum(np.einsum('ij,ij->i', v, v) / state.inv_mass[dyn]))
+
+
+class EventDrivenStage(Stage):
+    """Advance the world by dt exactly, impact by impact."""
+
+    name = 'event_driven'
+
+    def __init__(self, effects: Effects, accuracy: AccuracySettings) -> None:
+        """Keep the effects it simulates; refuse any it cannot do exactly."""
+        check_event_mode(accuracy, effects, 'accuracy')
+        self.gravity = np.zeros(3) if effects.gravity is None else np.asarray(effects.gravity,
+                                                                              float)
+        self.walls = effects.walls
+        self.restitution = effects.particle_restitution
+        self.collapse_time = accuracy.collapse_time
+        self.time = 0.0
+        self.events = 0
+        self._state: Optional[ParticleState] = None
+
+    # -- bookkeeping -------------------------------------------------------
+
+    def _rebuild(self, state: ParticleState, dimensions: int) -> None:
+        """Set up clocks, grid and predictions for ``state`` at ``self.time``."""
+        n = len(state)
+        if np.any(self.gravity != 0.0) and not np.all(state.dynamic):
+            raise SceneError('accuracy: mode event cannot simulate static particles (mass '
+                             '.inf) under gravity exactly; pick a step preset such as accurate')
+        self._state = state
+        self.dims = dimensions
+        self.ref_time = np.full(n, self.time)
+        self.last_impact = np.full(n, -np.inf)
+        self.count = np.zeros(n, dtype=np.int64)
+        self.heap: list = []
+        self.seq = itertools.count()
+        offsets = np.zeros((3 ** dimensions, 3), dtype=np.int64)
+        offsets[:, :dimensions] = list(itertools.product((-1, 0, 1), repeat=dimensions))
+        self.offsets = offsets
+        if n == 0:
+            self.cell_size = 1.0
+            self.cell = np.zeros((0, 3), dtype=np.int64)
+            self.grid: dict = {}
+            return
+        self.cell_size = self._choose_cell_size(state, dimensions)
+        self.cell = np.zeros((n, 3), dtype=np.int64)
+        self.cell[:, :dimensions] = np.floor(state.position[:, :dimensions] / self.cell_size)
+        keys, inverse = np.unique(self.cell, axis=0, return_inverse=True)
+        order = np.argsort(inverse.ravel(), kind='stable')
+        bounds = np.searchsorted(inverse.ravel()[order], np.arange(keys.shape[0] + 1))
+        self.grid = {tuple(keys[k].tolist()): set(order[bounds[k]:bounds[k + 1]].tolist())
+                     for k in range(keys.shape[0])}
+        for p in np.flatnonzero(state.dynamic):
+            self._predict(int(p), self.time)
+
+    def _choose_cell_size(self, state: ParticleState, dimensions: int) -> float:
+        """Cells at least one contact diameter wide, about 8 particles each."""
+        diameter = 2.0 * float(state.radius.max()) * (1.0 + 1e-9)
+        if self.walls is not None:
+            extent = (self.walls.high - self.walls.low)[:dimensions]
+        else:
+            pos = state.position[:, :dimensions]
+            extent = pos.max(axis=0) - pos.min(axis=0) + diameter
+        volume = float(np.prod(np.maximum(extent, diameter)))
+        spacing = (PARTICLES_PER_CELL * volume / len(state)) ** (1.0 / dimensions)
+        return max(diameter, spacing)
+
+    def _still_valid(self, state: ParticleState) -> bool:
+        """Return whether ``state`` is the one left by the last step, untouched."""
+        return (state is self._state and len(state) == self.count.size
+                and np.array_equal(state.position, self._position_after)
+                and np.array_equal(state.velocity, self._velocity_after))
+
+    # -- motion ------------------------------------------------------------
+
+    def _advance(self, index, when: float) -> None:
+        """Bring particle(s) ``index`` to time ``when`` on their exact paths."""
+        s = self._state
+        tau = np.asarray(when - self.ref_time[index], float)[..., None]
+        s.position[index] += s.velocity[index] * tau + 0.5 * self.gravity * tau * tau
+        s.velocity[index] += self.gravity * tau
+        self.ref_time[index] = when
+
+    def _sync_all(self, when: float) -> None:
+        """Bring every particle to time ``when`` (one vectorised update)."""
+        self._advance(slice(None), when)
+
+    def _neighbours(self, p: int) -> np.ndarray:
+        """Return the particles in the 3^d cells around particle ``p``'s cell."""
+        found: list[int] = []
+        get = self.grid.get
+        for key in (self.offsets + self.cell[p]).tolist():
+            members = get(tuple(key))
+            if members:
+                found.extend(members)
+        out = np.fromiter(found, dtype=np.int64, count=len(found))
+        return out[out != p]
+
+    def _boundary_times(self, p: int) -> tuple[np.ndarray, np.ndarray]:
+        """Return per-column (low x, high x, ...) times to reach walls and cell faces."""
+        s = self._state
+        d = self.dims
+        x, v, g = s.position[p, :d], s.velocity[p, :d], self.gravity[:d]
+        low_face = self.cell[p, :d] * self.cell_size
+        gaps = [x - low_face, (low_face + self.cell_size) - x]
+        if self.walls is not None:
+            r = s.radius[p]
+            gaps += [x - (self.walls.low[:d] + r), (self.walls.high[:d] - r) - x]
+        k = len(gaps) // 2
+        times = entering_time(np.concatenate(gaps), np.concatenate([v, -v] * k),
+                              np.concatenate([g, -g] * k))
+        # Columns in (low x, high x, low y, ...) order, cells then walls.
+        cells = np.empty(2 * d)
+        cells[0::2], cells[1::2] = times[:d], times[d:2 * d]
+        walls = np.full(2 * d, np.inf)
+        if k == 2:
+            walls[0::2], walls[1::2] = times[2 * d:3 * d], times[3 * d:]
+        return walls, cells
+
+    def _predict(self, p: int, when: float) -> None:
+        """Invalidate particle ``p``'s events and push its new ones (p is at ``when``)."""
+        self.count[p] += 1
+        stamp = int(self.count[p])
+        walls, cells = self._boundary_times(p)
+        push = heapq.heappush
+        if np.isfinite(walls).any():
+            col = int(np.argmin(walls))
+            push(self.heap, (when + float(walls[col]), next(self.seq), WALL, p, col, stamp, 0))
+        col = int(np.argmin(cells))
+        if np.isfinite(cells[col]):
+            push(self.heap, (when + float(cells[col]), next(self.seq), CELL, p, col, stamp, 0))
+        others = self._neighbours(p)
+        if not others.size:
+            return
+        self._advance(others, when)
+        s = self._state
+        a = np.full(others.size, p, dtype=np.int64)
+        times = pair_impact_times(s.position, s.velocity, s.radius, np.zeros(s.radius.size),
+                                  a, others)
+        for k in np.flatnonzero(np.isfinite(times)):
+            q = int(others[k])
+            push(self.heap, (when + float(times[k]), next(self.seq), PAIR, p, q, stamp,
+                             int(self.count[q])))
+
+    # -- events ------------------------------------------------------------
+
+    def _in_collapse(self, when: float, *particles: int) -> bool:
+        """Return whether any particle had an impact within t_c before ``when``."""
+        return any(when - self.last_impact[p] < self.collapse_time for p in particles)
+
+    def _pair_event(self, ctx: StepContext, when: float, p: int, q: int) -> None:
+        """Apply the impulse of particles p and q at their contact."""
+        s = self._state
+        both = np.array([p, q])
+        self._advance(both, when)
+        e = 1.0 if self._in_collapse(when, p, q) else self.restitution
+        normal, _ = line_of_action(s.position[[p]] - s.position[[q]],
+                                   s.velocity[[p]] - s.velocity[[q]])
+        before = _energy(s, both) if e < 1.0 else 0.0
+        if apply_normal_impulses(s.velocity, s.inv_mass, both[:1], both[1:], normal, e)[0]:
+            ctx.stats.collisions += 1
+            if e < 1.0:
+                ctx.stats.add_dissipated('restitution', before - _energy(s, both))
+        self.last_impact[both] = when
+        for k in (p, q):
+            if s.inv_mass[k] > 0.0:  # a static particle's events stay valid
+                self._predict(k, when)
+
+    def _wall_event(self, ctx: StepContext, when: float, p: int, col: int) -> None:
+        """Reflect particle p's normal velocity at a wall (TC model near collapse)."""
+        s = self._state
+        self._advance(p, when)
+        axis, high = divmod(col, 2)
+        toward = 1.0 if high else -1.0      # direction of the wall along the axis
+        speed_in = toward * s.velocity[p, axis]
+        pushed_in = toward * self.gravity[axis]
+        if speed_in > 0.0 or (speed_in == 0.0 and pushed_in > 0.0):
+            collapse = self._in_collapse(when, p)
+            e = 1.0 if collapse else self.walls.restitution
+            speed_out = e * speed_in
+            if collapse and pushed_in > 0.0:
+                speed_out = max(speed_out, 0.5 * pushed_in * self.collapse_time)
+            mass = 1.0 / s.inv_mass[p]
+            ctx.stats.add_dissipated('walls', 0.5 * mass * (speed_in ** 2 - speed_out ** 2))
+            s.velocity[p, axis] = -toward * speed_out
+            wall = self.walls.high[axis] - s.radius[p] if high else \
+                self.walls.low[axis] + s.radius[p]
+            s.position[p, axis] = wall  # exact contact, no drift of round-off
+            ctx.stats.wall_collisions += 1
+            self.last_impact[p] = when
+        self._predict(p, when)
+
+    def _cell_event(self, when: float, p: int, col: int) -> None:
+        """Move particle p into the next cell and predict against its new neighbours."""
+        self._advance(p, when)
+        axis, high = divmod(col, 2)
+        old = tuple(self.cell[p].tolist())
+        self.cell[p, axis] += 1 if high else -1
+        new = tuple(self.cell[p].tolist())
+        members = self.grid[old]
+        members.discard(p)
+        if not members:
+            del self.grid[old]
+        self.grid.setdefault(new, set()).add(p)
+        self._predict(p, when)
+
+    # -- the stage ---------------------------------------------------------
+
+    def run(self, ctx: StepContext) -> None:
+        """Process every event up to the end of the step, then sync all particles."""
+        if not self._still_valid(ctx.state):
+            self._rebuild(ctx.state, ctx.dimensions)
+        end = self.time + ctx.dt
+        heap, count = self.heap, self.count
+        while heap and heap[0][0] <= end:
+            when, _, kind, p, q, stamp_p, stamp_q = heapq.heappop(heap)
+            if count[p] != stamp_p or (kind == PAIR and count[q] != stamp_q):
+                continue
+            self.events += 1
+            if kind == PAIR:
+                self._pair_event(ctx, when, p, q)
+            elif kind == WALL:
+                self._wall_event(ctx, when, p, q)
+            else:
+                self._cell_event(when, p, q)
+        self._sync_all(end)
+        self.time = end
+        self._position_after = ctx.state.position.copy()
+        self._velocity_after = ctx.state.velocity.copy()
+
+    def describe(self) -> str:
+        """Say what the stage does."""
+        return ('exact event-driven: closed-form impact times (pairs, walls, gravity), '
+                f'heap with lazy invalidation, hash grid, TC model t_c = '
+                f'{self.collapse_time:g} s')

@@ -1,0 +1,298 @@
+"""The accuracy ladder: presets, ccd, contact ordering and the exact event mode."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from collision_node import SceneError, World, load_scene, parse_scene
+from collision_node.accuracy import PRESETS, AccuracySettings, check_event_mode, parse_accuracy
+from collision_node.bench_accuracy import missed_collisions
+from collision_node.effects import Effects
+from collision_node.simulate import main as simulate_main
+
+
+def world(accuracy, **scene) -> World:
+    """Return a world for an inline scene under ``accuracy``."""
+    return World(parse_scene(dict(accuracy=accuracy, **scene), 'test-scene'))
+
+
+def lecture_update(m1, m2, v1, v2, normal):
+    """Return the lecture's post-impact velocities (e = 1), written as on the slides."""
+    n = np.asarray(normal, float) / np.linalg.norm(normal)
+    a1, a2 = np.dot(v1, n), np.dot(v2, n)
+    b1 = ((m1 - m2) * a1 + 2 * m2 * a2) / (m1 + m2)
+    b2 = ((m2 - m1) * a2 + 2 * m1 * a1) / (m1 + m2)
+    return v1 - a1 * n + b1 * n, v2 - a2 * n + b2 * n
+
+
+def gas(count, radius, speed, dt, seed=3, size=1.0, dimensions=3, restitution=None):
+    """Return an inline gas-in-a-box scene mapping."""
+    box = {'min': [0.0] * dimensions, 'max': [size] * dimensions}
+    effects = {'walls': box}
+    if restitution is not None:
+        effects['restitution'] = restitution
+    return dict(dimensions=dimensions, dt=dt, effects=effects,
+                generate=[{'kind': 'gas', 'count': count, 'radius': radius, 'mass': 1.0,
+                           'speed': speed, 'seed': seed, 'region': box}])
+
+
+# -- settings ---------------------------------------------------------------
+
+def test_presets_are_documented_sets_and_override_key_by_key():
+    assert parse_accuracy(None, 'x') == PRESETS['balanced']
+    assert parse_accuracy('exact', 'x').mode == 'event'
+    assert not parse_accuracy('fast', 'x').ccd
+    custom = parse_accuracy({'preset': 'fast', 'ccd': True, 'substeps': 3}, 'x')
+    assert custom == AccuracySettings(ccd=True, substeps=3, iterations=8)
+    assert parse_accuracy('accurate', 'x').requery and not parse_accuracy(None, 'x').requery
+    assert parse_accuracy({'ordering': 'batched'}, 'x').ccd  # based on balanced
+
+
+@pytest.mark.parametrize('value, message', [
+    ('fastest', "s.yaml: accuracy: unknown preset 'fastest'"),
+    ({'ccd': 1}, 's.yaml: accuracy.ccd: expected true or false, got 1'),
+    ({'mode': 'exactly'}, "s.yaml: accuracy.mode: unknown mode 'exactly'"),
+    ({'ordering': 'random'}, "s.yaml: accuracy.ordering: unknown ordering 'random'"),
+    ({'substeps': 0}, 's.yaml: accuracy.substeps: must be >= 1, got 0'),
+    ({'collapse_time': -1}, 's.yaml: accuracy.collapse_time: must be >= 0, got -1'),
+    ({'speed': 2}, 's.yaml: accuracy.speed: unknown key'),
+])
+def test_bad_accuracy_is_one_clear_line(value, message):
+    with pytest.raises(SceneError) as error:
+        parse_accuracy(value, 's.yaml: accuracy')
+    assert str(error.value).startswith(message)
+
+
+def test_event_mode_refuses_effects_it_cannot_do_exactly():
+    @dataclass(frozen=True)
+    class WithDrag(Effects):
+        drag: object = None
+
+    check_event_mode(PRESETS['exact'], WithDrag(gravity=np.zeros(3)), 'x')  # allowed
+    with pytest.raises(SceneError, match=r'^s\.yaml: accuracy: mode event .* cannot simulate '
+                                         r'drag exactly'):
+        check_event_mode(PRESETS['exact'], WithDrag(drag=0.1), 's.yaml: accuracy')
+    check_event_mode(PRESETS['accurate'], WithDrag(drag=0.1), 'x')  # step mode: fine
+
+
+def test_event_mode_refuses_static_particles_under_gravity():
+    w = world('exact', effects={'gravity': [0, 0, -9.81]}, particles=[
+        {'position': [0, 0, 0], 'radius': 0.1, 'mass': 1.0},
+        {'position': [0, 0, -1], 'radius': 0.1, 'mass': float('inf')}])
+    with pytest.raises(SceneError, match='static particles'):
+        w.step()
+
+
+# -- exact mode: the lecture's formulas ---------------------------------------
+
+def test_exact_oblique_pair_matches_lecture_at_contact():
+    w = World(load_scene('oblique_pair').with_accuracy(PRESETS['exact']))
+    p0, v0 = w.state.position.copy(), w.state.velocity.copy()
+    # |d + u s| = r1 + r2 with d = (-2, 0.25), u = (2, 0): s = 1 - sqrt(15/16) / 2.
+    contact = 1.0 - np.sqrt(15.0 / 16.0) / 2.0
+    w.step(1000)                                   # 1 s, well past the impact
+    assert w.stats.collisions == 1
+    at_contact = p0 + v0 * contact
+    e1, e2 = lecture_update(1.0, 3.0, v0[0], v0[1], at_contact[0] - at_contact[1])
+    np.testing.assert_allclose(w.state.velocity, [e1, e2], rtol=1e-12, atol=1e-15)
+    expected = at_contact + np.array([e1, e2]) * (1.0 - contact)
+    np.testing.assert_allclose(w.state.position, expected, rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize('m1, m2', [(1.0, 1.0), (1.0, 3.0), (3.0, 1.0), (1e-6, 1e6)])
+def test_exact_head_on_matches_lecture(m1, m2):
+    w = world('exact', dt=0.01, particles=[
+        {'position': [-0.7, 0, 0], 'velocity': [2.0, 0, 0], 'radius': 0.5, 'mass': m1},
+        {'position': [0.6, 0, 0], 'velocity': [-0.5, 0, 0], 'radius': 0.5, 'mass': m2}])
+    w.step(100)
+    e1, e2 = lecture_update(m1, m2, np.array([2.0, 0, 0]), np.array([-0.5, 0, 0]), [1, 0, 0])
+    np.testing.assert_allclose(w.state.velocity, [e1, e2], rtol=1e-12, atol=1e-15)
+    contact = 0.3 / 2.5                            # gap 0.3 m closing at 2.5 m/s
+    x1 = -0.7 + 2.0 * contact + e1[0] * (1.0 - contact)
+    x2 = 0.6 - 0.5 * contact + e2[0] * (1.0 - contact)
+    np.testing.assert_allclose(w.state.position[:, 0], [x1, x2], rtol=1e-12)
+
+
+@pytest.mark.parametrize('preset', ['exact', 'balanced', 'accurate', 'fast'])
+def test_cradle_ends_at_last_ball_moving(preset):
+    balls = [{'position': [float(k), 0], 'radius': 0.5, 'mass': 1.0} for k in range(5)]
+    balls[0] = {'position': [-0.5, 0], 'velocity': [1.5, 0], 'radius': 0.5, 'mass': 1.0}
+    w = world(preset, dimensions=2, dt=0.01, particles=balls)
+    w.step(100)
+    np.testing.assert_allclose(w.state.velocity[:, 0], [0, 0, 0, 0, 1.5], atol=1e-15)
+    assert w.stats.collisions == 4
+
+
+def test_exact_gas_in_a_box_conserves_energy_for_ten_seconds():
+    w = world('exact', **gas(count=40, radius=0.04, speed=1.0, dt=0.1))
+    energy = w.kinetic_energy()
+    w.step(100)                                    # 10 simulated seconds
+    assert w.stats.collisions > 50 and w.stats.wall_collisions > 100
+    assert abs(w.kinetic_energy() - energy) / energy < 1e-12
+    s = w.state
+    gaps = np.linalg.norm(s.position[:, None] - s.position[None], axis=2) - 0.08
+    assert gaps[np.triu_indices(len(s), 1)].min() > -1e-12
+    assert s.position.min() > 0.04 - 1e-12 and s.position.max() < 1 - 0.04 + 1e-12
+
+
+def test_exact_bounce_under_gravity_matches_closed_form():
+    g, h, e, r = 9.81, 1.0, 0.5, 0.1
+    w = world('exact', dt=0.01, effects={'gravity': [0, 0, -g], 'walls': {
+        'min': [-1, -1, 0], 'max': [1, 1, 3], 'restitution': e}},
+        particles=[{'position': [0, 0, h + r], 'velocity': [0.3, 0, 0], 'radius': r,
+                    'mass': 2.0}])
+    w.step(60)
+    fall = np.sqrt(2 * h / g)
+    up = e * g * fall                              # rebound speed
+    t = 0.6 - fall                                 # 0.6 s < fall + 2 up / g: one bounce
+    assert w.stats.wall_collisions == 1
+    np.testing.assert_allclose(w.state.position[0], [0.18, 0, r + up * t - g * t * t / 2],
+                               rtol=1e-12)
+    np.testing.assert_allclose(w.state.velocity[0], [0.3, 0, up - g * t], rtol=1e-12)
+
+
+def test_exact_inelastic_collapse_does_not_hang():
+    """Three balls with e = 0.05 (below the 1-D collapse bound 7 - 4 sqrt 3) on a line."""
+    w = world({'preset': 'exact', 'collapse_time': 1e-6}, dimensions=2, dt=0.5,
+              effects={'restitution': 0.05}, particles=[
+                  {'position': [-0.5, 0], 'velocity': [1.0, 0], 'radius': 0.1, 'mass': 1.0},
+                  {'position': [0.0, 0], 'radius': 0.1, 'mass': 1.0},
+                  {'position': [0.21, 0], 'radius': 0.1, 'mass': 1.0}])
+    w.step(4)
+    stage = w.pipeline.stages[0]
+    assert 10 <= w.stats.collisions <= stage.events < 10_000
+    # They end as one cluster at 1/3 m/s each: 1/6 J of the 1/2 J is left.
+    assert w.kinetic_energy() == pytest.approx(1 / 6, rel=1e-6)
+    np.testing.assert_allclose(w.momentum(), [1.0, 0, 0], rtol=1e-14)
+
+
+def test_exact_ball_bouncing_to_rest_hops_with_period_t_c():
+    w = world({'preset': 'exact', 'collapse_time': 1e-3}, dt=0.1,
+              effects={'gravity': [0, 0, -9.81], 'walls': {
+                  'min': [-1, -1, 0], 'max': [1, 1, 3], 'restitution': 0.5}},
+              particles=[{'position': [0, 0, 1.1], 'radius': 0.1, 'mass': 1.0}])
+    w.step(30)                                     # rests after about 1.35 s
+    stage = w.pipeline.stages[0]
+    assert stage.events < 3 * 1.7 / 1e-3
+    assert 0.1 - 1e-12 <= w.state.position[0, 2] < 0.1 + 9.81 * 1e-3 ** 2
+    assert abs(w.state.velocity[0, 2]) <= 9.81 * 1e-3
+
+
+# -- ccd ---------------------------------------------------------------------
+
+BULLET = [{'position': [0, 0, 0], 'velocity': [756.0, 0, 0], 'radius': 0.0045, 'mass': 0.15},
+          {'position': [1.0, 0, 0], 'radius': 0.025, 'mass': 1.0}]
+
+
+@pytest.mark.parametrize('preset', ['balanced', 'accurate', 'exact'])
+def test_bullet_hits_target_at_sixtieth_of_a_second(preset):
+    w = world(preset, dt=1 / 60, particles=BULLET)
+    w.step(1)
+    assert w.stats.collisions == 1
+    e1, e2 = lecture_update(0.15, 1.0, np.array([756.0, 0, 0]), np.zeros(3), [1, 0, 0])
+    np.testing.assert_allclose(w.state.velocity, [e1, e2], rtol=1e-12)
+
+
+def test_bullet_passes_through_without_ccd():
+    w = world('fast', dt=1 / 60, particles=BULLET)
+    w.step(1)
+    assert w.stats.collisions == 0                 # why ccd exists
+
+
+@pytest.mark.parametrize('preset, radii_per_step', [('balanced', 2.0), ('balanced', 8.0),
+                                                    ('accurate', 8.0)])
+def test_no_missed_collisions_in_a_fast_gas(preset, radii_per_step):
+    radius, dt = 0.02, 0.01
+    w = world(preset, **gas(count=300, radius=radius, speed=radii_per_step * radius / dt,
+                            dt=dt, seed=5))
+    missed = 0
+    for _ in range(60):
+        before = w.state.copy()
+        w.step()
+        missed += sum(missed_collisions(before, w.state, w.scene.effects.walls))
+    assert w.stats.collisions > 100
+    assert missed == 0
+
+
+def test_fast_gas_without_ccd_does_tunnel():
+    """The same check finds pass-throughs when ccd is off (so it can fail)."""
+    radius, dt = 0.02, 0.01
+    w = world('fast', **gas(count=300, radius=radius, speed=8 * radius / dt, dt=dt, seed=5))
+    missed = 0
+    for _ in range(60):
+        before = w.state.copy()
+        w.step()
+        missed += sum(missed_collisions(before, w.state, w.scene.effects.walls))
+    assert missed > 0
+
+
+def test_requery_finds_contacts_of_particles_sped_up_by_an_impact():
+    """A heavy ball hits a light one, which reaches a third ball outside its query."""
+    balls = [{'position': [0.0, 0, 0], 'velocity': [1.0, 0, 0], 'radius': 0.1, 'mass': 1e6},
+             {'position': [0.21, 0, 0], 'radius': 0.1, 'mass': 1.0},
+             {'position': [0.55, 0, 0], 'radius': 0.1, 'mass': 1.0}]
+    # The light ball, hit at t = 0.01 s, leaves at about 2 m/s and reaches the
+    # third (outside its query: it was at rest) at t = 0.075 s, inside the step.
+    late = world('balanced', dt=0.12, particles=balls)
+    late.step()
+    gap = np.linalg.norm(late.state.position[1] - late.state.position[2]) - 0.2
+    assert late.stats.collisions == 1 and gap < -0.05   # found only at the next step
+    full = world({'requery': True}, dt=0.12, particles=balls)
+    full.step()
+    assert full.stats.collisions == 2
+    assert np.linalg.norm(full.state.position[1] - full.state.position[2]) > 0.2 - 1e-12
+    np.testing.assert_allclose(full.state.velocity[2, 0], 2.0 - 2e-6, rtol=1e-5)
+
+
+def test_balanced_elastic_gas_keeps_energy_for_ten_seconds():
+    w = world('balanced', **gas(count=200, radius=0.02, speed=1.0, dt=0.01))
+    energy = w.kinetic_energy()
+    w.step(1000)
+    assert w.stats.collisions > 500
+    assert abs(w.kinetic_energy() - energy) / energy < 1e-9
+
+
+# -- ordering ----------------------------------------------------------------
+
+THREE = [{'position': [-1.0, 0], 'velocity': [1.0, 0], 'radius': 0.5, 'mass': 1},
+         {'position': [0.0, 0], 'radius': 0.5, 'mass': 1},
+         {'position': [1.0, 0], 'velocity': [-1.0, 0], 'radius': 0.5, 'mass': 1}]
+
+
+@pytest.mark.parametrize('accuracy', ['fast', 'balanced', 'exact'])
+def test_sequential_orderings_keep_three_balls_elastic(accuracy):
+    w = world(accuracy, dimensions=2, dt=0.001, particles=THREE)
+    w.step(1)
+    np.testing.assert_allclose(w.state.velocity[:, 0], [-1.0, 0.0, 1.0], atol=1e-15)
+
+
+@pytest.mark.parametrize('ccd', [False, True])
+def test_batched_ordering_loses_the_three_ball_energy_but_never_adds(ccd):
+    w = world({'ordering': 'batched', 'ccd': ccd, 'iterations': 64}, dimensions=2,
+              dt=0.001, particles=THREE)
+    w.step(1)
+    np.testing.assert_allclose(w.state.velocity[:, 0], [0.0, 0.0, 0.0], atol=1e-9)
+    g = world({'preset': 'fast', 'ordering': 'batched'},
+              **gas(count=200, radius=0.02, speed=1.0, dt=0.01))
+    energy = g.kinetic_energy()
+    for _ in range(200):
+        before = g.kinetic_energy()
+        g.step()
+        assert g.kinetic_energy() <= before * (1 + 1e-14)
+    assert g.kinetic_energy() < energy
+
+
+# -- runner flag ---------------------------------------------------------------
+
+def test_runner_accuracy_flag(tmp_path, capsys):
+    out = tmp_path / 'out.json'
+    assert simulate_main(['oblique_pair', '--accuracy', 'exact', '--out', str(out),
+                          '--quiet']) == 0
+    assert simulate_main(['oblique_pair', '--accuracy', '{preset: fast, substeps: 2}',
+                          '--explain']) == 0
+    assert 'drift' in capsys.readouterr().out
+    assert simulate_main(['oblique_pair', '--accuracy', 'fastest']) == 2
+    assert "--accuracy: unknown preset 'fastest'" in capsys.readouterr().err
