@@ -135,7 +135,8 @@ def test_valid_scene_defaults_and_units():
     np.testing.assert_array_equal(scene.initial.ids, [0, 1])
     np.testing.assert_array_equal(scene.initial.velocity, 0.0)
     np.testing.assert_array_equal(scene.initial.inv_mass, [0.5, 0.0])   # .inf is static
-    assert len(World(scene).pipeline.names) == 5   # no walls declared, no wall stage
+    names = World(scene).pipeline.names   # default preset balanced: swept contacts
+    assert names == ['swept_contacts', 'narrowphase', 'separation']
 
 
 def test_exponents_without_sign_or_dot_are_numbers(tmp_path):

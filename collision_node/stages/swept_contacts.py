@@ -200,9 +200,6 @@ class SweptContactStage(Stage):
         escapes = _Escapes(centre, half, s.radius, n) if self.requery else None
         movable = dynamic[pair_i] | dynamic[pair_j]
         a, b = pair_i[movable], pair_j[movable]
-        dissipative = self.restitution < 1.0 or (self.walls is not None
-                                                 and self.walls.restitution < 1.0)
-        energy_before = s.kinetic_energy() if dissipative else 0.0
         local_time = np.zeros(n)
         pair_time = np.full(a.size, np.inf)
         wall_time = np.full((n, 2 * ctx.dimensions), np.inf)
@@ -238,8 +235,6 @@ class SweptContactStage(Stage):
                 a, b = np.concatenate([a, extra_a]), np.concatenate([b, extra_b])
                 pair_time = np.concatenate([pair_time, np.full(extra_a.size, np.inf)])
         x[dynamic] += v[dynamic] * (dt - local_time[dynamic])[:, None]
-        if dissipative:
-            ctx.stats.add_dissipated('restitution', energy_before - s.kinetic_energy())
 
     def _choose_pairs(self, a: np.ndarray, b: np.ndarray, time: np.ndarray,
                       dynamic: np.ndarray, first_wall: np.ndarray, n: int
