@@ -55,9 +55,10 @@ def gas_scene(count: int, effects: Optional[dict]) -> dict:
     return scene
 
 
-def time_per_step(count: int, effects: Optional[dict], steps: int) -> float:
+def time_per_step(count: int, effects: Optional[dict], steps: int, accuracy: str) -> float:
     """Return the seconds per step of one run of ``steps`` steps after a warm-up."""
-    world = World(parse_scene(gas_scene(count, effects), 'bench_effects'))
+    world = World(parse_scene(dict(gas_scene(count, effects), accuracy=accuracy),
+                              'bench_effects'))
     world.step(2)                            # warm-up: caches, first allocations
     start = time.perf_counter()
     world.step(steps)
@@ -69,6 +70,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--count', type=int, default=10_000, help='particles (default 10000)')
     parser.add_argument('--steps', type=int, default=50, help='timed steps per run')
     parser.add_argument('--repeats', type=int, default=7, help='runs per configuration')
+    # One contact path for every row: under a ccd preset the rows without
+    # gravity, drag or friction would take the swept path and the others not.
+    parser.add_argument('--accuracy', default='fast',
+                        help='accuracy preset for every row (default fast: discrete contacts)')
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -81,7 +86,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark and print the table; return the exit code."""
     load = os.getloadavg()
-    print(f'# {args.count} particles, {args.steps} steps x {args.repeats} runs per row, '
+    print(f'# {args.count} particles, accuracy {args.accuracy}, '
+          f'{args.steps} steps x {args.repeats} runs per row, '
           f'median; load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}, '
           f'{os.cpu_count()} CPUs')
     print('| effects | stages | ms per step | relative to none |')
@@ -91,11 +97,13 @@ def run(args: argparse.Namespace) -> int:
     samples: dict[str, list[float]] = {label: [] for label in CONFIGS}
     for _ in range(args.repeats):
         for label, effects in CONFIGS.items():
-            samples[label].append(time_per_step(args.count, effects, args.steps))
+            samples[label].append(time_per_step(args.count, effects, args.steps,
+                                                args.accuracy))
     baseline = statistics.median(samples['none (no effects key)'])
     for label, effects in CONFIGS.items():
         seconds = statistics.median(samples[label])
-        world = World(parse_scene(gas_scene(2, effects), 'bench_effects'))
+        world = World(parse_scene(dict(gas_scene(2, effects), accuracy=args.accuracy),
+                                  'bench_effects'))
         stages = ', '.join(world.pipeline.names)
         print(f'| {label} | {stages} | {seconds * 1e3:.1f} | {seconds / baseline:.2f} |')
     return 0

@@ -42,9 +42,9 @@ def gas_scene(count: int, seed: int = 7) -> dict:
     }
 
 
-def time_gas(count: int, steps: int, warmup: int) -> dict:
+def time_gas(count: int, steps: int, warmup: int, accuracy: str = 'balanced') -> dict:
     """Step a gas of ``count`` particles; return timing and conservation numbers."""
-    world = World(parse_scene(gas_scene(count), f'gas_{count}'))
+    world = World(parse_scene(dict(gas_scene(count), accuracy=accuracy), f'gas_{count}'))
     world.step(warmup)
     energy_start = world.kinetic_energy()
     collisions_start = world.stats.collisions
@@ -82,15 +82,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--work', type=float, default=5e6,
                         help='particle-steps timed per count (default: 5e6)')
     parser.add_argument('--warmup', type=int, default=10, help='untimed steps first')
+    parser.add_argument('--accuracy', default='balanced',
+                        help='accuracy preset of the gas (default: balanced, the default preset)')
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark and print the Markdown table."""
-    rows = [time_gas(n, steps_for(n, args.work), args.warmup) for n in sorted(args.counts)]
+    rows = [time_gas(n, steps_for(n, args.work), args.warmup, args.accuracy)
+            for n in sorted(args.counts)]
     load = os.getloadavg()
     machine = platform.processor() or platform.machine()
     print(f'3-D elastic gas in walls, radius {RADIUS} m, {REFERENCE_COUNT} per '
-          f'{REFERENCE_SIDE:g} m cube, dt = 1/240 s; {machine}, {os.cpu_count()} cores, '
+          f'{REFERENCE_SIDE:g} m cube, dt = 1/240 s, accuracy {args.accuracy}; '
+          f'{machine}, {os.cpu_count()} cores, '
           f'load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}')
     print()
     print('| N | steps | ns per particle-step | growth exponent | CPU ns per particle-step '

@@ -33,7 +33,7 @@ from visualization_msgs.msg import MarkerArray
 from msg_adapters import (clock_message, marker_array_bytes, point_cloud_bytes,
                           pose_array_bytes, velocities_bytes)
 
-from .accuracy import parse_accuracy
+from .accuracy import parse_accuracy_text
 from .scene import Scene, load_scene, parse_scene_text
 from .validation import SceneError
 from .world import NonFiniteStateError, World
@@ -175,7 +175,8 @@ PARAMETERS: dict[str, tuple[Any, ParameterDescriptor]] = {
         'Scene file path or shipped scene name; empty: the embedded elastic billiards break',
         ParameterType.PARAMETER_STRING, read_only=True)),
     'accuracy': ('', _descriptor(
-        "Accuracy preset overriding the scene's accuracy setting; empty: the scene's",
+        "Accuracy preset name or YAML mapping (e.g. '{preset: fast, substeps: 2}') "
+        "overriding the scene's; empty: the scene's",
         ParameterType.PARAMETER_STRING, read_only=True)),
     'real_time_factor': (1.0, _descriptor(
         'Simulated seconds per wall second (runtime-changeable)',
@@ -213,7 +214,8 @@ class CollisionNode(Node):
         self.scene = self._load_scene(value['scene'])
         if value['accuracy']:
             self.scene = self.scene.with_accuracy(
-                parse_accuracy(value['accuracy'], 'parameter accuracy'))
+                parse_accuracy_text(value['accuracy'], self.scene.effects,
+                                    'parameter accuracy'))
         self.world = World(self.scene, max_particles=value['max_particles'])
         self.real_time_factor = value['real_time_factor']
         self.publish_rate = value['publish_rate']

@@ -161,8 +161,14 @@ def parse_scene(data: Any, source: str, default_name: str = 'scene') -> Scene:
 
 
 def parse_particle_section(particles: Any, generate: Any, source: str, dimensions: int,
-                           first_id: int) -> ParticleState:
-    """Validate ``particles`` and ``generate`` lists and build their state."""
+                           first_id: int, max_particles: Optional[int] = None
+                           ) -> ParticleState:
+    """Validate ``particles`` and ``generate`` lists and build their state.
+
+    With ``max_particles``, a request that would pass it is refused after
+    validation but before any particle is generated, so a huge ``generate``
+    count costs no memory.
+    """
     if particles is None:
         particles = []
     if not isinstance(particles, list):
@@ -176,32 +182,38 @@ def parse_particle_section(particles: Any, generate: Any, source: str, dimension
         fail(f'{source}: generate', f'expected a list, got {type(generate).__name__}')
     specs = [parse_generate(spec, f'{source}: generate[{index}]', dimensions)
              for index, spec in enumerate(generate)]
+    requested = len(records) + sum(spec['count'] for spec in specs)
+    if max_particles is not None and first_id + requested > max_particles:
+        fail(source, f'{requested} particles would make {first_id + requested}, '
+                     f'over max_particles = {max_particles}')
     for spec in specs:
         state = state.concatenate(generate_state(spec, dimensions, first_id + len(state)))
     return state
 
 
-def parse_spawn(text: str, dimensions: int, first_id: int,
-                source: str = 'spawn') -> ParticleState:
+def parse_spawn(text: str, dimensions: int, first_id: int, source: str = 'spawn',
+                max_particles: Optional[int] = None) -> ParticleState:
     """Validate a spawn request (YAML or JSON) with the scene's particle schema.
 
     Accepted: one particle mapping, a list of them, one ``generate`` entry
     (a mapping with ``kind``), or ``{particles: [...], generate: [...]}``.
+    ``max_particles`` bounds the world's size after the spawn.
     """
     try:
         data = load_yaml(text)
     except yaml.YAMLError as error:
         raise SceneError(f'{source}: not valid YAML or JSON: {_one_line(error)}') from None
     if isinstance(data, list):
-        return parse_particle_section(data, None, source, dimensions, first_id)
+        return parse_particle_section(data, None, source, dimensions, first_id, max_particles)
     data = require_mapping(data, source)
     if 'kind' in data:
-        return parse_particle_section(None, [data], source, dimensions, first_id)
+        return parse_particle_section(None, [data], source, dimensions, first_id,
+                                      max_particles)
     if 'particles' in data or 'generate' in data:
         reject_unknown_keys(data, ('particles', 'generate'), source, separator=': ')
         return parse_particle_section(data.get('particles'), data.get('generate'), source,
-                                      dimensions, first_id)
-    return parse_particle_section([data], None, source, dimensions, first_id)
+                                      dimensions, first_id, max_particles)
+    return parse_particle_section([data], None, source, dimensions, first_id, max_particles)
 
 
 def _one_line(error: Exception) -> str:

@@ -107,7 +107,8 @@ class World:
 
     def spawn_text(self, text: str, source: str = 'spawn') -> np.ndarray:
         """Validate a spawn request (YAML or JSON) and append it atomically."""
-        return self.spawn(parse_spawn(text, self.scene.dimensions, len(self.state), source))
+        return self.spawn(parse_spawn(text, self.scene.dimensions, len(self.state), source,
+                                      self.max_particles))
 
     def explain(self) -> str:
         """Return the step pipeline, one numbered stage per line."""

@@ -12,6 +12,7 @@ from collision_node.accuracy import PRESETS, AccuracySettings, check_event_mode,
 from collision_node.bench_accuracy import missed_collisions
 from collision_node.effects import Effects
 from collision_node.simulate import main as simulate_main
+from collision_node.stages.broadphase import ALL_PAIRS_UP_TO
 
 
 def world(accuracy, **scene) -> World:
@@ -233,14 +234,19 @@ def test_requery_finds_contacts_of_particles_sped_up_by_an_impact():
     """A heavy ball hits a light one, which reaches a third ball outside its query."""
     balls = [{'position': [0.0, 0, 0], 'velocity': [1.0, 0, 0], 'radius': 0.1, 'mass': 1e6},
              {'position': [0.21, 0, 0], 'radius': 0.1, 'mass': 1.0},
-             {'position': [0.55, 0, 0], 'radius': 0.1, 'mass': 1.0}]
+             {'position': [0.565, 0, 0], 'radius': 0.1, 'mass': 1.0}]
     # The light ball, hit at t = 0.01 s, leaves at about 2 m/s and reaches the
-    # third (outside its query: it was at rest) at t = 0.075 s, inside the step.
-    late = world('balanced', dt=0.12, particles=balls)
+    # third at t = 0.0875 s, inside the step; at rest, the two were 0.355 m
+    # apart, past r_i + r_j + the Verlet skin (0.35 m), so not candidates.
+    # Far-away resting filler makes the world larger than the broadphase's
+    # all-pairs size, so candidates come from the Verlet list, as in real scenes.
+    filler = [{'position': [10.0 + 0.5 * k, 5.0, 0], 'radius': 0.1, 'mass': 1.0}
+              for k in range(ALL_PAIRS_UP_TO)]
+    late = world('balanced', dt=0.12, particles=balls + filler)
     late.step()
     gap = np.linalg.norm(late.state.position[1] - late.state.position[2]) - 0.2
     assert late.stats.collisions == 1 and gap < -0.05   # found only at the next step
-    full = world({'requery': True}, dt=0.12, particles=balls)
+    full = world({'requery': True}, dt=0.12, particles=balls + filler)
     full.step()
     assert full.stats.collisions == 2
     assert np.linalg.norm(full.state.position[1] - full.state.position[2]) > 0.2 - 1e-12

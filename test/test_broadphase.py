@@ -57,7 +57,8 @@ def test_verlet_list_with_fast_movers_misses_no_contact(monkeypatch, seed, all_p
     particles = [{'position': rng.uniform(-1.5, 1.5, 3).tolist(),
                   'velocity': velocity[k].tolist(), 'radius': float(radius[k]),
                   'mass': float('inf') if static[k] else 1.0} for k in range(count)]
-    world = World(parse_scene({'dt': 0.005, 'particles': particles,
+    # Preset fast: the discrete pipeline, whose broadphase keeps the Verlet list.
+    world = World(parse_scene({'dt': 0.005, 'particles': particles, 'accuracy': 'fast',
                                'effects': {'walls': {'min': [-2, -2, -2], 'max': [2, 2, 2]}}},
                               'verlet'))
     at = [isinstance(stage, BroadphaseStage) for stage in world.pipeline.stages].index(True)

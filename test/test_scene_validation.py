@@ -135,7 +135,8 @@ def test_valid_scene_defaults_and_units():
     np.testing.assert_array_equal(scene.initial.ids, [0, 1])
     np.testing.assert_array_equal(scene.initial.velocity, 0.0)
     np.testing.assert_array_equal(scene.initial.inv_mass, [0.5, 0.0])   # .inf is static
-    assert len(World(scene).pipeline.names) == 5   # no walls declared, no wall stage
+    names = World(scene).pipeline.names   # default preset balanced: swept contacts
+    assert names == ['swept_contacts', 'narrowphase', 'separation']
 
 
 def test_exponents_without_sign_or_dot_are_numbers(tmp_path):
@@ -236,3 +237,20 @@ def test_readme_scene_example_is_a_valid_scene():
     assert scene.name == 'oblique_pair' and scene.dimensions == 2
     assert len(scene.initial) == 3 + 100
     assert scene.initial.inv_mass[2] == 0.0 and scene.effects.walls is not None
+
+
+def test_oversized_generate_spawn_is_refused_before_generating(monkeypatch):
+    import collision_node.scene as scene_module
+    world = World(parse_scene({'particles': [
+        {'position': [0, 0, 0], 'radius': 0.1, 'mass': 1}]}, 'room'), max_particles=10)
+
+    def must_not_generate(*args, **kwargs):
+        raise AssertionError('generated particles for a request that cannot fit')
+
+    monkeypatch.setattr(scene_module, 'generate_state', must_not_generate)
+    request = ('{kind: gas, count: 5000000, radius: 0.001, mass: 1, '
+               'region: {min: [-10, -10, -10], max: [10, 10, 10]}}')
+    with pytest.raises(SceneError, match=r'^spawn: 5000000 particles would make 5000001, '
+                                         r'over max_particles = 10$'):
+        world.spawn_text(request)
+    assert len(world.state) == 1

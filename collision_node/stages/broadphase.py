@@ -162,35 +162,51 @@ class BroadphaseStage(Stage):
     def run(self, ctx: StepContext) -> None:
         """Store candidate pairs on the context."""
         state = ctx.state
-        n = len(state)
+        ctx.pair_i, ctx.pair_j = self.find(state.position, state.radius, state.velocity,
+                                           state.inv_mass, ctx.dt)
+
+    def find(self, position: np.ndarray, radius: np.ndarray, velocity: np.ndarray,
+             inv_mass: np.ndarray, dt: float, extra: Optional[np.ndarray] = None
+             ) -> tuple[np.ndarray, np.ndarray]:
+        """Return every pair (i < j, sorted) with |p_i - p_j| <= r_i + e_i + r_j + e_j.
+
+        ``extra`` (e, default 0) is a per-particle allowance on top of the
+        radius, e.g. |v| dt for swept contacts. It counts against the skin
+        like a displacement: a particle whose displacement since the search
+        plus e exceeds skin/2 is a mover, and movers are queried with their
+        allowance, so the list stays exactly what a fresh search would need.
+        """
+        n = position.shape[0]
         if n <= ALL_PAIRS_UP_TO:
             if self._all_pairs_count != n:
                 self._all_pairs = np.triu_indices(n, k=1)   # sorted by (i, j)
                 self._all_pairs_count = n
-            ctx.pair_i, ctx.pair_j = self._all_pairs
-            return
-        if not self._list_matches(state):
-            self._rebuild(state.position, state.radius, state.velocity, state.inv_mass, ctx.dt)
-            ctx.pair_i, ctx.pair_j = self._search.i, self._search.j
-            return
-        moved = state.position - self._built_position
-        movers = np.flatnonzero(np.einsum('ij,ij->i', moved, moved)
-                                > self._half_skin * self._half_skin)
+            return self._all_pairs
+        if extra is None:
+            extra = np.zeros(n)
+        if not self._list_matches(position, radius):
+            self._rebuild(position, radius, velocity, inv_mass, dt)
+        movers = self._movers(position, extra)
+        if movers.size > MAX_MOVER_SHARE * n:
+            self._rebuild(position, radius, velocity, inv_mass, dt)
+            movers = self._movers(position, extra)
         if movers.size == 0:
-            ctx.pair_i, ctx.pair_j = self._search.i, self._search.j
-        elif movers.size <= MAX_MOVER_SHARE * n:
-            keys = self._with_mover_pairs(state.position, state.radius, movers)
-            self.mover_updates += 1
-            ctx.pair_i, ctx.pair_j = keys // n, keys % n
-        else:
-            self._rebuild(state.position, state.radius, state.velocity, state.inv_mass, ctx.dt)
-            ctx.pair_i, ctx.pair_j = self._search.i, self._search.j
+            return self._search.i, self._search.j
+        keys = self._with_mover_pairs(position, radius, movers, extra)
+        self.mover_updates += 1
+        return keys // n, keys % n
 
-    def _list_matches(self, state) -> bool:
+    def _movers(self, position: np.ndarray, extra: np.ndarray) -> np.ndarray:
+        """Return the particles whose displacement plus allowance exceeds skin/2."""
+        moved = position - self._built_position
+        return np.flatnonzero(np.sqrt(np.einsum('ij,ij->i', moved, moved)) + extra
+                              > self._half_skin)
+
+    def _list_matches(self, position: np.ndarray, radius: np.ndarray) -> bool:
         """Return whether the list was built for these particles (count and radii)."""
         return (self._built_position is not None
-                and self._built_position.shape == state.position.shape
-                and self._built_radius is state.radius)
+                and self._built_position.shape == position.shape
+                and self._built_radius is radius)
 
     def _rebuild(self, position: np.ndarray, radius: np.ndarray, velocity: np.ndarray,
                  inv_mass: np.ndarray, dt: float) -> None:
@@ -211,7 +227,7 @@ class BroadphaseStage(Stage):
         self.searches += 1
 
     def _with_mover_pairs(self, position: np.ndarray, radius: np.ndarray,
-                          movers: np.ndarray) -> np.ndarray:
+                          movers: np.ndarray, extra: np.ndarray) -> np.ndarray:
         """Return the listed pair keys plus every pair a mover may now overlap."""
         n = position.shape[0]
         search = self._search
@@ -220,8 +236,10 @@ class BroadphaseStage(Stage):
             # A mover against a particle that moved <= skin/2: that particle's
             # listed position is within r_i + r_j + skin/2 of the mover now.
             max_small = float(radius[search.small].max())
-            hits = search.tree.query_ball_point(position[movers],
-                                                radius[movers] + max_small + self._half_skin)
+            # With an allowance e_j <= skin/2 - displacement_j for non-movers,
+            # the same bound holds with the mover's own e added.
+            hits = search.tree.query_ball_point(
+                position[movers], radius[movers] + extra[movers] + max_small + self._half_skin)
             mover_i, found = _flatten_hits(movers, hits)
             parts_i.append(mover_i)
             parts_j.append(search.small[found])
@@ -233,7 +251,7 @@ class BroadphaseStage(Stage):
         if movers.size <= ALL_PAIRS_UP_TO:
             between_i, between_j = np.triu_indices(movers.size, k=1)
         else:
-            between = search_pairs(position[movers], radius[movers])
+            between = search_pairs(position[movers], radius[movers] + extra[movers])
             between_i, between_j = between.i, between.j
         parts_i.append(movers[between_i])
         parts_j.append(movers[between_j])
