@@ -62,6 +62,17 @@ def pair_impact_times(position: np.ndarray, velocity: np.ndarray, radius: np.nda
     disc = half_b * half_b - u2 * c
     approaching = half_b < 0.0
     overlapping = c <= 0.0
+    # At a subnormal or zero offset the dot product above underflows to 0;
+    # for such overlapping pairs decide with the scale-robust line of action
+    # (which also gives coincident centres their deterministic normal).
+    unsure = np.flatnonzero(overlapping & (half_b == 0.0))
+    if unsure.size:
+        ua, ub, when = a[unsure], b[unsure], start[unsure]
+        raw = (position[ua] + velocity[ua] * (when - local_time[ua])[:, None]
+               - position[ub] - velocity[ub] * (when - local_time[ub])[:, None])
+        relative = velocity[ua] - velocity[ub]
+        normal, _ = line_of_action(raw, relative)
+        approaching[unsure] = np.einsum('ij,ij->i', normal, relative) < 0.0
     hit = approaching & (overlapping | (disc >= 0.0))
     with np.errstate(divide='ignore', invalid='ignore'):
         # c / (-b + sqrt(disc)) is the smaller root without cancellation.
