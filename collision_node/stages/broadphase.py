@@ -156,6 +156,7 @@ class BroadphaseStage(Stage):
         self._half_skin = 0.0
         self._all_pairs = (_EMPTY, _EMPTY)
         self._all_pairs_count = -1
+        self._direct = False           # allowances too large for the skin: search each step
         self.searches = 0              # full searches so far (for tests and benchmarks)
         self.mover_updates = 0         # steps that patched the list with mover pairs
 
@@ -184,12 +185,22 @@ class BroadphaseStage(Stage):
             return self._all_pairs
         if extra is None:
             extra = np.zeros(n)
+        if self._direct and self._list_matches(position, radius):
+            # Allowances outgrew the skin last step: search directly until
+            # they fit again, instead of rebuilding a list nobody can reuse.
+            if np.count_nonzero(extra > self._half_skin) > MAX_MOVER_SHARE * n:
+                return candidate_pairs(position, radius + extra)
+            self._direct = False
+            self._built_position = None
         if not self._list_matches(position, radius):
             self._rebuild(position, radius, velocity, inv_mass, dt)
         movers = self._movers(position, extra)
         if movers.size > MAX_MOVER_SHARE * n:
             self._rebuild(position, radius, velocity, inv_mass, dt)
             movers = self._movers(position, extra)
+            if movers.size > MAX_MOVER_SHARE * n:
+                self._direct = True
+                return candidate_pairs(position, radius + extra)
         if movers.size == 0:
             return self._search.i, self._search.j
         keys = self._with_mover_pairs(position, radius, movers, extra)
