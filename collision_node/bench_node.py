@@ -50,10 +50,10 @@ GAS_SPEED = 1.0       # m/s
 WARM_UP = 1.0         # s of wall time the node runs before a real-time-factor run is timed
 
 
-def gas_scene_text(count: int, dt: float) -> str:
+def gas_scene_text(count: int, dt: float, accuracy: str = 'balanced') -> str:
     """Return a 3-D gas of ``count`` particles in a walled cube, ~8 % volume fraction."""
     side = round(max(1.0, (count * (4.0 / 3.0) * np.pi * GAS_RADIUS ** 3 / 0.08) ** (1 / 3)), 3)
-    return (f'name: gas_{count}\ndimensions: 3\ndt: {dt!r}\n'
+    return (f'name: gas_{count}\ndimensions: 3\ndt: {dt!r}\naccuracy: {accuracy}\n'
             f'effects:\n  walls: {{min: [0, 0, 0], max: [{side}, {side}, {side}]}}\n'
             f'generate:\n  - {{kind: gas, count: {count}, radius: {GAS_RADIUS}, mass: 1.0, '
             f'speed: {GAS_SPEED}, seed: 1, region: {{min: [0, 0, 0], '
@@ -205,7 +205,7 @@ def sustained_rtf(scene_path: Path, factor: float, seconds: float,
         node.destroy_node()
 
 
-def rtf_rows(sizes: list[int], seconds: float) -> list[str]:
+def rtf_rows(sizes: list[int], seconds: float, accuracy: str = 'balanced') -> list[str]:
     """Return Markdown rows: sustained real-time factor per size and dt."""
     rows = ['| N | dt (s) | one step alone (ms) | asked | real-time factor | steps/s | '
             'state + poses published (Hz) |',
@@ -214,7 +214,7 @@ def rtf_rows(sizes: list[int], seconds: float) -> list[str]:
         for n in sizes:
             for label, dt in (('1/60', 1 / 60), ('1/240', 1 / 240)):
                 path = Path(directory) / f'gas_{n}_{label.replace("/", "_")}.yaml'
-                path.write_text(gas_scene_text(n, dt))
+                path.write_text(gas_scene_text(n, dt, accuracy))
                 world = World(parse_scene_text(path.read_text(), str(path)))
                 world.step(2)
                 step = best_ms(lambda: world.step(1), 5)
@@ -234,6 +234,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--repeat', type=int, default=20,
                         help='timed repetitions per output (default 20)')
     parser.add_argument('--skip-rtf', action='store_true', help='only time the outputs')
+    parser.add_argument('--accuracy', default='balanced',
+                        help='accuracy preset of the simulated gas (default balanced)')
     parser.add_argument('--sink', action='store_true', help=argparse.SUPPRESS)
 
 
@@ -252,7 +254,8 @@ def run(args: argparse.Namespace) -> int:
               f'({os.cpu_count()} CPUs)\n')
         print('\n'.join(output_costs(args.sizes, args.repeat)) + '\n')
         if not args.skip_rtf:
-            print('\n'.join(rtf_rows(args.sizes, args.seconds)) + '\n')
+            print(f'accuracy preset: {args.accuracy}\n')
+            print('\n'.join(rtf_rows(args.sizes, args.seconds, args.accuracy)) + '\n')
         load = os.getloadavg()
         print(f'load average after: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}')
     finally:
