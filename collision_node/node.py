@@ -40,24 +40,22 @@ from .world import NonFiniteStateError, World
 
 NODE_NAME = 'collision_node'
 
-# State streams: reliable (a best-effort publisher sends nothing to default
-# subscribers), keep only the newest tick; a late tick is worth less than
-# the next one.
-STATE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                       reliability=ReliabilityPolicy.RELIABLE,
-                       durability=DurabilityPolicy.VOLATILE)
+
+def reliable_qos(depth: int, durability: DurabilityPolicy = DurabilityPolicy.VOLATILE
+                 ) -> QoSProfile:
+    """Return a reliable keep-last profile (a best-effort publisher reaches no default sub)."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=ReliabilityPolicy.RELIABLE, durability=durability)
+
+
+# State streams: keep only the newest tick; a late tick is worth less than the next one.
+STATE_QOS = reliable_qos(1)
 # Velocities: one message per particle per tick, so the queue holds a tick's burst.
-VELOCITY_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
-                          reliability=ReliabilityPolicy.RELIABLE,
-                          durability=DurabilityPolicy.VOLATILE)
-# Commands and their answers: reliable with a deeper queue, none may be lost.
-COMMAND_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
-                         reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.VOLATILE)
+VELOCITY_QOS = reliable_qos(1000)
+# Commands and their answers: a deeper queue, none may be lost.
+COMMAND_QOS = reliable_qos(50)
 # Status: the newest one, kept for late joiners (a viewer started later).
-STATUS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                        reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
+STATUS_QOS = reliable_qos(1, DurabilityPolicy.TRANSIENT_LOCAL)
 
 STATUS_PERIOD = 0.5          # s of wall time between status messages
 RATE_WINDOW = 2.0            # s of wall time over which rates are measured

@@ -119,11 +119,6 @@ def swept_contacts_cover(effects: Effects) -> bool:
             and effects.restitution_threshold is None)
 
 
-def batched_covers(effects: Effects) -> bool:
-    """Say whether the batched solver simulates every declared effect (as for ccd)."""
-    return swept_contacts_cover(effects)
-
-
 def build_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
     """Assemble the stages a scene's effects and accuracy settings call for."""
     from .stages.batched_impulses import BatchedImpulseStage
@@ -169,7 +164,8 @@ def build_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
     if accuracy.ccd:
         notes.append('ccd asked for, but gravity, drag, friction or a restitution threshold '
                      'is declared: contacts are detected at the step end')
-    if accuracy.ordering == 'batched' and batched_covers(effects):
+    # The batched solver knows the same effects as the swept stage.
+    if accuracy.ordering == 'batched' and swept_contacts_cover(effects):
         solver: Stage = BatchedImpulseStage(effects.particle_restitution, accuracy.iterations)
     else:
         if accuracy.ordering == 'batched':

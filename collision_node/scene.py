@@ -221,11 +221,5 @@ def _one_line(error: Exception) -> str:
     return ' '.join(str(error).split())
 
 
-def scene_summary(scene: Scene, count: Optional[int] = None) -> str:
-    """Return a one-line description of a scene."""
-    n = len(scene.initial) if count is None else count
-    return f'{scene.name}: {n} particles, {scene.dimensions}-D, dt={scene.dt:g} s'
-
-
 __all__ = ['Scene', 'SceneError', 'load_scene', 'parse_scene', 'parse_scene_text',
            'parse_spawn', 'shipped_scene_names']

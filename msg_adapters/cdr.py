@@ -97,8 +97,3 @@ class CdrWriter:
     def bytes(self) -> bytes:
         """Return the serialised message."""
         return b''.join(self._chunks)
-
-
-def string_size(text: str) -> int:
-    """Return the bytes a CDR string takes after its uint32 length."""
-    return len(text.encode('utf-8')) + 1

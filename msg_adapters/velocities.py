@@ -11,7 +11,6 @@ from __future__ import annotations
 from typing import Optional
 
 import numpy as np
-from geometry_msgs.msg import VelocityStamped
 
 from .cdr import ENCAPSULATION_CDR_LE, CdrWriter
 from .stamp import stamp_from_seconds
@@ -79,14 +78,4 @@ def velocities_bytes(ids: np.ndarray, velocity: np.ndarray,
         blob = records.tobytes()
         for k, row in enumerate(rows.tolist()):
             out[row] = blob[k * size:(k + 1) * size]
-    return out
-
-
-def velocities_from_messages(messages: list[VelocityStamped]) -> dict[int, np.ndarray]:
-    """Return particle id -> (6,) linear and angular velocity from received messages."""
-    out = {}
-    for msg in messages:
-        lin, ang = msg.velocity.linear, msg.velocity.angular
-        out[particle_id_from_frame(msg.body_frame_id)] = np.array(
-            [lin.x, lin.y, lin.z, ang.x, ang.y, ang.z])
     return out
