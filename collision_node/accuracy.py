@@ -48,17 +48,24 @@ Settings
     stall the event loop. A particle resting on a wall under gravity then
     hops with a period of about t_c (it costs about 1/t_c events per
     simulated second).
+``event_budget``
+    Event mode: events (impacts, cell crossings) a step may take, per
+    particle (at least ``MIN_EVENT_BUDGET`` in all). A step that needs more
+    is rolled back and solved by the ``accurate`` step solver instead (see
+    ``stages/event_driven.py``): resting contact under gravity (the TC
+    model makes a resting particle hop every t_c, hundreds of events per
+    step) and dense clusters. Counted as ``fallback_steps`` in the stats.
 
 Presets
 -------
-========== ====== ======== ===== ======= ========== ========== =============
-preset     mode   substeps ccd   requery ordering   iterations collapse_time
-========== ====== ======== ===== ======= ========== ========== =============
-fast       step   1        no    --      sequential 8          (unused)
-balanced   step   1        yes   no      sequential 32         (unused)
-accurate   step   4        yes   yes     sequential 64         (unused)
-exact      event  1        --    --      --         --         1e-5 s
-========== ====== ======== ===== ======= ========== ========== =============
+========== ====== ======== ===== ======= ========== ========== ============= ============
+preset     mode   substeps ccd   requery ordering   iterations collapse_time event_budget
+========== ====== ======== ===== ======= ========== ========== ============= ============
+fast       step   1        no    --      sequential 8          (unused)      (unused)
+balanced   step   1        yes   no      sequential 32         (unused)      (unused)
+accurate   step   4        yes   yes     sequential 64         (unused)      (unused)
+exact      event  1        --    --      --         --         1e-5 s        10
+========== ====== ======== ===== ======= ========== ========== ============= ============
 """
 
 from __future__ import annotations
@@ -88,6 +95,7 @@ class AccuracySettings:
     ordering: str = 'sequential'
     iterations: int = 32
     collapse_time: float = 1e-5
+    event_budget: int = 10
 
 
 PRESETS: dict[str, AccuracySettings] = {
@@ -97,6 +105,10 @@ PRESETS: dict[str, AccuracySettings] = {
     'exact': AccuracySettings(mode='event'),
 }
 DEFAULT_PRESET = 'balanced'
+# Event mode: a step may always take this many events, however few particles.
+MIN_EVENT_BUDGET = 1000
+# The step solver a too-busy event-mode step falls back to.
+EVENT_FALLBACK = 'accurate'
 
 
 def parse_accuracy(value: Any, where: str) -> AccuracySettings:
@@ -113,7 +125,7 @@ def parse_accuracy(value: Any, where: str) -> AccuracySettings:
     reject_unknown_keys(value, ['preset'] + names, where)
     base = parse_accuracy(value.get('preset', DEFAULT_PRESET), f'{where}.preset')
     changes: dict[str, Any] = {}
-    for key in ('substeps', 'iterations'):
+    for key in ('substeps', 'iterations', 'event_budget'):
         if key in value:
             changes[key] = integer(value[key], f'{where}.{key}', minimum=1)
     for key, known in (('mode', MODES), ('ordering', ORDERINGS)):

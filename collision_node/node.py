@@ -393,6 +393,7 @@ class CollisionNode(Node):
             'keeping_up': self.keeping_up,
             'collisions': stats.collisions,
             'wall_collisions': stats.wall_collisions,
+            'fallback_steps': stats.fallback_steps,
             'collisions_per_second': collision_rate,
             'kinetic_energy': self.world.kinetic_energy(),
             # Energy balance (see README, Effects): terms, losses per effect, error.

@@ -7,7 +7,7 @@ does not declare is simply not in the list and costs nothing.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from typing import Optional
 
 import numpy as np
@@ -25,6 +25,18 @@ class StepStats:
     wall_collisions: int = 0
     max_penetration: float = 0.0
     dissipated: dict = field(default_factory=dict)
+    # Steps the event-driven mode handed to its step-solver fallback.
+    fallback_steps: int = 0
+
+    def copy(self) -> 'StepStats':
+        """Return an independent duplicate of the counters (to roll a step back)."""
+        return replace(self, dissipated=dict(self.dissipated))
+
+    def restore(self, saved: 'StepStats') -> None:
+        """Take every counter back to ``saved`` in place."""
+        for item in fields(self):
+            value = getattr(saved, item.name)
+            setattr(self, item.name, dict(value) if isinstance(value, dict) else value)
 
     def add_dissipated(self, effect: str, energy: float) -> None:
         """Book ``energy`` joules as removed by ``effect``."""

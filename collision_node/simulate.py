@@ -135,6 +135,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             'dissipated': dict(world.stats.dissipated),
             'energy': {'start': balance_start, 'end': balance_end},
             'max_penetration': world.stats.max_penetration,
+            'fallback_steps': world.stats.fallback_steps,
             'wall_seconds': wall_seconds,
         },
     }
@@ -162,6 +163,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                   f'balance error {balance_end["balance_error"]:.3g} J')
         print(f'momentum change: {d_momentum:.3g} kg m/s; '
               f'max penetration: {world.stats.max_penetration:.3g} m')
+        if world.stats.fallback_steps:
+            print(f'event mode: {world.stats.fallback_steps} of {world.steps} steps needed '
+                  'more events than its budget and were solved by the step fallback')
     return 0
 
 

@@ -350,12 +350,22 @@ def test_case06_dense_cluster_of_1000_resolves_without_explosion(preset, deep_pr
 # 7. Resting contact under gravity -------------------------------------------------------
 
 G = 9.81
-# Gravity cases run at the time-stepped presets: the event-driven preset takes
-# seconds per step on a resting column (remaining work, docs/stability.md).
-STEP_PRESETS = [name for name in sorted(PRESETS) if not event_driven(name)]
 
 
-@pytest.mark.parametrize('preset', STEP_PRESETS)
+def assert_exact_fell_back_every_step(world: World, preset: str) -> None:
+    """For the event-driven preset: resting contact went to the step solver every step.
+
+    Documented limitation (docs/stability.md, ``stages/event_driven.py``):
+    under gravity a resting particle would meet its support again and
+    again (the TC model's hop), so the exact preset rolls such a step back
+    and solves it with the ``accurate`` step solver.
+    """
+    if event_driven(preset):
+        assert world.stats.fallback_steps == world.steps
+    else:
+        assert world.stats.fallback_steps == 0
+
+
 @pytest.mark.parametrize('restitution', [0.0, 1.0])
 def test_case07_resting_column_of_20_never_gains_energy_and_rests(
         preset, restitution, deep_profile):
@@ -363,7 +373,11 @@ def test_case07_resting_column_of_20_never_gains_energy_and_rests(
 
     Total energy (kinetic + potential) never rises at any step; from 0.5 s
     on every speed is exactly 0 (measured: at rest from the first second,
-    the stack sinking 1.5 cm into itself, 1.5 mm per contact, and staying).
+    the stack sinking into itself and staying). `fast` (8 sweeps for a
+    chain of 20) never settles: documented, held to the energy bound and
+    to the restitution threshold 2 |g| dt as its jitter bound (measured
+    0.17 m/s, threshold 0.082 m/s: asserted as the documented outcome
+    below). `exact` solves every step of it with the `accurate` solver.
     """
     radius = 0.05
     world = build(preset, [ball([0, radius + 2 * radius * k], radius, 1.0, [0, 0])
@@ -372,23 +386,72 @@ def test_case07_resting_column_of_20_never_gains_energy_and_rests(
                   effects={'gravity': [0, -G], 'walls': {'min': [None, 0.0]},
                            'restitution': restitution})
     previous = world.energy()['total']
-    # Documented (docs/stability.md): `fast` (8 sweeps) never settles (0.17 m/s
-    # after 1 s); `exact` lets the energy rise by 1.2e-10 of it and takes about
-    # 3 s a step here, so it runs 3 steps, held to the energy bound only.
-    rounding = 1e-9 if event_driven(preset) else 1e-12
-    settles = not event_driven(preset) and preset != 'fast'
-    steps = 3 if event_driven(preset) else (480 if deep_profile else 150)
-    for _ in range(steps):
+    settles = preset != 'fast'
+    fastest_late = 0.0
+    for _ in range(480 if deep_profile else 130):
         world.step()
         total = world.energy()['total']
-        assert total <= previous + rounding * abs(previous)
+        assert total <= previous + 1e-12 * abs(previous)
         previous = total
-        if world.time >= 0.5 and settles:
-            assert np.max(np.abs(world.state.velocity)) <= 1e-9
+        if world.time >= 0.5:
+            fastest_late = max(fastest_late, float(np.max(np.abs(world.state.velocity))))
+    if settles:
+        assert fastest_late <= 1e-9
+    else:
+        assert fastest_late <= 0.25          # documented: never settles (0.17 m/s)
     assert_finite(world)
+    assert_exact_fell_back_every_step(world, preset)
     assert max_penetration(world) <= (0.002 if settles else 0.01)      # fast: 6.4 mm
     x = world.state.position[:, 0]
     np.testing.assert_array_equal(x, 0.0)                      # still a column
+
+
+def hexagonal_pile(radius: float, rows: int, per_row: int) -> list:
+    """Return discs packed in rows, each row resting in the hollows of the one below."""
+    height = np.sqrt(3.0) * radius
+    return [ball([(radius if row % 2 == 0 else 2 * radius) + 2 * radius * k,
+                  radius + height * row], radius, 1.0, [0, 0])
+            for row in range(rows) for k in range(per_row)]
+
+
+# Steps of the 500-disc pile per preset in the fast profile: the `accurate`
+# solver (also exact's fallback) takes about 1.3 s a step on it.
+PILE_STEPS = {'fast': 72, 'balanced': 72, 'accurate': 12, 'exact': 12}
+
+
+@pytest.mark.parametrize('restitution', [0.0, 1.0])
+def test_case07_pile_of_500_never_gains_energy_and_does_not_jitter(
+        preset, restitution, deep_profile):
+    """500 discs (r = 5 cm, 20 rows of 25) packed on a floor between walls, 240 Hz.
+
+    Total energy never rises at any step (1e-12 relative); over the last
+    12 steps (50 ms) no speed reaches the restitution threshold
+    2 |g| dt = 0.082 m/s, below which contact is resting (measured over
+    0.25 to 0.5 s: 0.065 m/s `fast`, 0.051 `balanced`, 0.0017 `accurate`;
+    the first steps, while the packing settles by a fraction of a
+    millimetre, reach 0.24 m/s under `fast` and `balanced`);
+    no disc moves sideways by more than 2 mm (measured 1.4 mm `fast`).
+    Fast profile: 72 steps, 12 for `accurate` and `exact`; deep: 120.
+    """
+    radius = 0.05
+    particles = hexagonal_pile(radius, 20, 25)
+    world = build(preset, particles, dimensions=2, dt=1.0 / 240.0,
+                  effects={'gravity': [0, -G], 'restitution': restitution,
+                           'walls': {'min': [0.0, 0.0], 'max': [51 * radius, None]}})
+    threshold = 2.0 * G * world.dt
+    previous = world.energy()['total']
+    steps = 120 if deep_profile else PILE_STEPS.get(preset, 12)
+    for step in range(steps):
+        world.step()
+        total = world.energy()['total']
+        assert total <= previous + 1e-12 * abs(previous)
+        previous = total
+        if step >= steps - 12:
+            assert np.max(np.linalg.norm(world.state.velocity, axis=1)) < threshold
+    assert_finite(world)
+    assert_exact_fell_back_every_step(world, preset)
+    start_x = np.array([entry['position'][0] for entry in particles])
+    assert np.max(np.abs(world.state.position[:, 0] - start_x)) <= 0.002
 
 
 # 13. Supported bounce --------------------------------------------------------------------
@@ -409,51 +472,89 @@ def supported_bounce(preset: str, column: int, restitution: float) -> float:
     return rebound / np.sqrt(2.0 * G * drop)
 
 
-@pytest.mark.parametrize('preset', STEP_PRESETS)
-@pytest.mark.parametrize('restitution', [1.0, 0.5])
-def test_case13_supported_bounce_never_exceeds_the_impact(preset, restitution):
-    """A ball dropped on 0, 1, 2, 3 resting balls: rebound <= 1.01 x e x impact speed.
+def sequential_impact_model(column: int, restitution: float) -> float:
+    """Return rebound / impact speed of a ball dropped on ``column`` equal resting balls.
 
-    On the bare floor the measured restitution is e (to 2 %). Documented
-    defect (docs/stability.md): on a column it does NOT stay e. The
-    restitution threshold is applied to closing speeds before the solve,
-    so the resting contacts below (the floor, the lower pairs) count as
-    e = 0 even when the impact reaches them within the solve: at e = 1 the
-    ball stops dead on 1, 2 or 3 balls (measured 0, 0, 0; the floor takes
-    the energy as 'walls'). Asserted here: it never bounces higher.
+    The sequential impact model in 1-D: pairwise impacts with e, one
+    after another as the shock runs down the column, off the floor and
+    back up, repeated until nothing approaches (gravity is negligible
+    during the impacts). At e = 1 it gives 1 for every column; at
+    e = 0.5: 0.5, 0.21875, 0.06055, 0.00301.
     """
-    if event_driven(preset):
-        # Documented: `exact` takes ~0.4 s a step under gravity and bounces off the
-        # floor elastically whatever the walls' e (measured 0.995 at e = 0.5).
-        assert supported_bounce(preset, 0, restitution) <= 1.01
-        return
-    ratios = [supported_bounce(preset, column, restitution) for column in range(4)]
-    assert max(ratios) <= 1.01 * restitution + 1e-9
-    assert ratios[0] >= 0.98 * restitution
+    v = [0.0] * column + [-1.0]        # bottom ball first, upwards positive
+
+    def collide(k: int) -> bool:
+        closing = v[k] - v[k + 1]
+        if closing <= 1e-15:
+            return False
+        mean = 0.5 * (v[k] + v[k + 1])
+        v[k], v[k + 1] = mean - 0.5 * restitution * closing, mean + 0.5 * restitution * closing
+        return True
+
+    while True:
+        changed = [collide(k) for k in reversed(range(column))]
+        if v[0] < -1e-15:
+            v[0], changed = -restitution * v[0], changed + [True]
+        changed += [collide(k) for k in range(column)]
+        if not any(changed):
+            return v[-1]
+
+
+@pytest.mark.parametrize('restitution', [1.0, 0.5])
+def test_case13_supported_bounce_restitution_does_not_depend_on_the_column(
+        preset, restitution):
+    """A ball dropped 0.5 m on 0, 1, 2, 3 resting balls (e everywhere), 240 Hz.
+
+    Measured restitution = highest upward speed after the impact / impact
+    speed, at step ends (so up to g dt = 1.3 % low or high). At e = 1 the
+    rebound never exceeds 1.01 times the impact speed and does not depend
+    on the column's height: all four within 0.02 of each other and of 1
+    (measured 0.995 on the floor, 1.005 on 1 to 3 balls at step presets).
+    At e = 0.5 the sequential impact model (which the solver follows: the
+    shock of an impact runs through resting contacts with their e) says
+    the column does matter; each value is held to it within 0.01
+    (measured 0.4951, 0.2198, 0.0630, 0.0 at `balanced`). `exact` takes
+    the resting column's steps with the `accurate` solver.
+    """
+    ratios = np.array([supported_bounce(preset, column, restitution) for column in range(4)])
+    assert ratios.max() <= 1.01 * restitution
+    if restitution == 1.0:
+        assert ratios.min() >= 0.98
+        assert ratios.max() - ratios.min() <= 0.02
+    expected = [sequential_impact_model(column, restitution) for column in range(4)]
+    np.testing.assert_allclose(ratios, expected, rtol=0, atol=0.01 * max(restitution, 1.0))
 
 
 # 14. Two-ball drop -----------------------------------------------------------------------
 
-@pytest.mark.parametrize('preset', STEP_PRESETS)
 @pytest.mark.parametrize('dt', [1.0 / 240.0, 1.0 / 1000.0], ids=['240Hz', '1000Hz'])
 def test_case14_two_ball_drop_small_ball_leaves_at_3r_minus_1_over_r_plus_1(preset, dt):
     """A 1 kg ball resting on a 10 kg one, dropped 1 m onto an elastic floor.
 
     Sequential impacts: the big ball bounces first, then meets the small
     one still falling, which leaves at (3r - 1)/(r + 1) = 29/11 times the
-    impact speed. Tolerance 0.5 % (measured 0.22 % at 240 Hz, 0.04 % at
-    1000 Hz: gravity acts during the step of the impacts).
+    impact speed. Step presets: highest speed at step ends, to 0.5 %
+    (measured 0.22 % at 240 Hz, 0.04 % at 1000 Hz: gravity acts during the
+    step of the impacts). `exact`: both impacts at t = sqrt(2 h / g)
+    exactly, so the speed at the first step end after them is
+    29/11 sqrt(2 g h) - g (t_end - t), to 1e-9.
     """
     r, big, small, height = 10.0, 0.1, 0.05, 1.0
     world = build(preset, [ball([0, height + big], big, r, [0, 0]),
                            ball([0, height + 2 * big + small], small, 1.0, [0, 0])],
                   dimensions=2, dt=dt, effects={'gravity': [0, -G], 'walls': {'min': [None, 0.0]}})
-    launch = 0.0
-    for _ in range(int(0.7 / dt)):
+    impact_time, impact_speed = np.sqrt(2.0 * height / G), np.sqrt(2.0 * G * height)
+    launch = (3 * r - 1) / (r + 1) * impact_speed
+    highest = 0.0
+    while world.time < 0.7:
         world.step()
-        launch = max(launch, float(world.state.velocity[1, 1]))
+        if event_driven(preset) and world.time >= impact_time and highest == 0.0:
+            assert world.state.velocity[1, 1] == pytest.approx(
+                launch - G * (world.time - impact_time), rel=1e-9)
+        highest = max(highest, float(world.state.velocity[1, 1]))
     assert_finite(world)
-    assert launch / np.sqrt(2.0 * G * height) == pytest.approx((3 * r - 1) / (r + 1), rel=5e-3)
+    assert highest == pytest.approx(launch, rel=5e-3)
+    assert world.stats.fallback_steps == 0
 
 
 # 8. Scale extremes ------------------------------------------------------------------------

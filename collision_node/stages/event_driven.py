@@ -25,14 +25,24 @@ the particles of the 3^d neighbouring cells. At the end of each step every
 particle is brought to the step's end time (one vectorised update) so the
 world's state is a snapshot like in step mode.
 
-Inelastic collapse (infinitely many impacts in finite time when e < 1) is
-stopped with the TC model: an impact within ``collapse_time`` (t_c) of
-either particle's previous impact is elastic. A particle resting on a wall
-with gravity pushing it in would hit the wall again at once with zero
-speed; in that collapse regime it leaves the wall at g t_c / 2, so it hops
-with a period of t_c (a known price of the TC model: about 1/t_c events per
-second, and at most m (g t_c)^2 / 8 J added once, booked as negative
-``walls`` dissipation).
+Inelastic collapse (infinitely many impacts in finite time when e < 1)
+without gravity is stopped with the TC model: an impact within
+``collapse_time`` (t_c) of either particle's previous impact is elastic.
+
+Resting contact under gravity is where event-driven exactness ends: a
+particle resting on a wall or on others meets them again at once with
+zero speed, again and again (the TC model would make it hop every t_c,
+hundreds of events a step, adding energy, and make any impact on it
+elastic). So under gravity an event in the collapse regime that the TC
+model would alter (e < 1, or a particle pushed into a wall with about no
+speed) ends the step's exact attempt, and so does a step that needs more
+events than its budget (``event_budget`` per particle, at least
+``MIN_EVENT_BUDGET``: a dense cluster, say). Such a step is rolled back
+(state and counters) and solved by the ``accurate`` step solver instead,
+counted in ``fallback_steps``; after k fallbacks in a row the next
+2^k - 1 steps (at most ``MAX_FALLBACK_HOLD``) go straight to the step
+solver before event mode is tried again, so a pile at rest pays for the
+attempt only now and then.
 
 Scenes with an effect other than particles, walls, restitution and gravity
 are refused (:func:`collision_node.accuracy.check_event_mode`), and so are
@@ -48,19 +58,28 @@ from typing import Optional
 
 import numpy as np
 
-from ..accuracy import AccuracySettings, check_event_mode
+from ..accuracy import (AccuracySettings, check_event_mode, EVENT_FALLBACK, MIN_EVENT_BUDGET,
+                        PRESETS)
 from ..effects import Effects
 from ..impulse import apply_normal_impulses
-from ..pipeline import Stage, StepContext
+from ..pipeline import build_pipeline, Pipeline, Stage, StepContext
 from ..state import ParticleState
 from ..validation import SceneError
 from .narrowphase import line_of_action
 from .swept_contacts import pair_impact_times
 
 PAIR, WALL, CELL = 0, 1, 2
+
+
+class NotExactable(Exception):
+    """An event the TC model would have to alter under gravity: resting contact."""
+
+
 # Cells hold about this many particles: fewer means more cell crossings,
 # more means longer candidate lists per prediction.
 PARTICLES_PER_CELL = 8.0
+# Steps in a row that go straight to the step solver after fallbacks, at most.
+MAX_FALLBACK_HOLD = 63
 
 
 def entering_time(gap: np.ndarray, rate: np.ndarray, curvature: np.ndarray) -> np.ndarray:
@@ -69,7 +88,10 @@ def entering_time(gap: np.ndarray, rate: np.ndarray, curvature: np.ndarray) -> n
     ``gap`` >= 0 is inside; a gap at or below zero that is closing (or not
     opening while pushed in) counts as now. inf where it never happens.
     """
-    disc = rate * rate - 2.0 * curvature * gap
+    # An open side of the walls is a plane at infinity: its gap is inf, the
+    # products below are NaN and read as never.
+    with np.errstate(invalid='ignore'):
+        disc = rate * rate - 2.0 * curvature * gap
     root = np.sqrt(np.maximum(disc, 0.0))
     closing = rate < 0.0
     curved = curvature != 0.0
@@ -103,9 +125,15 @@ class EventDrivenStage(Stage):
         self.walls = effects.walls
         self.restitution = effects.particle_restitution
         self.collapse_time = accuracy.collapse_time
+        self.event_budget = accuracy.event_budget
+        self.effects = effects
+        self.under_gravity = bool(np.any(self.gravity != 0.0))
         self.time = 0.0
         self.events = 0
         self._state: Optional[ParticleState] = None
+        self._fallback: Optional[Pipeline] = None
+        self._fallback_streak = 0
+        self._hold = 0
 
     # -- bookkeeping -------------------------------------------------------
 
@@ -144,11 +172,13 @@ class EventDrivenStage(Stage):
     def _choose_cell_size(self, state: ParticleState, dimensions: int) -> float:
         """Cells at least one contact diameter wide, about 8 particles each."""
         diameter = 2.0 * float(state.radius.max()) * (1.0 + 1e-9)
+        pos = state.position[:, :dimensions]
+        extent = pos.max(axis=0) - pos.min(axis=0) + diameter
         if self.walls is not None:
-            extent = (self.walls.high - self.walls.low)[:dimensions]
-        else:
-            pos = state.position[:, :dimensions]
-            extent = pos.max(axis=0) - pos.min(axis=0) + diameter
+            # A box side bounds the cells' region; an open side (an infinite
+            # plane) does not, and must not make the cells infinitely wide.
+            between = (self.walls.high - self.walls.low)[:dimensions]
+            extent = np.where(np.isfinite(between), between, extent)
         volume = float(np.prod(np.maximum(extent, diameter)))
         spacing = (PARTICLES_PER_CELL * volume / len(state)) ** (1.0 / dimensions)
         return max(diameter, spacing)
@@ -241,7 +271,11 @@ class EventDrivenStage(Stage):
         s = self._state
         both = np.array([p, q])
         self._advance(both, when)
-        e = 1.0 if self._in_collapse(when, p, q) else self.restitution
+        e = self.restitution
+        if self._in_collapse(when, p, q) and e < 1.0:
+            if self.under_gravity:
+                raise NotExactable
+            e = 1.0
         normal, _ = line_of_action(s.position[[p]] - s.position[[q]],
                                    s.velocity[[p]] - s.velocity[[q]])
         before = _energy(s, both) if e < 1.0 else 0.0
@@ -263,11 +297,13 @@ class EventDrivenStage(Stage):
         speed_in = toward * s.velocity[p, axis]
         pushed_in = toward * self.gravity[axis]
         if speed_in > 0.0 or (speed_in == 0.0 and pushed_in > 0.0):
-            collapse = self._in_collapse(when, p)
-            e = 1.0 if collapse else self.walls.restitution
+            e = self.walls.restitution
+            if self._in_collapse(when, p):
+                resting = pushed_in > 0.0 and speed_in < 0.5 * pushed_in * self.collapse_time
+                if self.under_gravity and (e < 1.0 or resting):
+                    raise NotExactable      # resting on the wall: the step solver takes it
+                e = 1.0
             speed_out = e * speed_in
-            if collapse and pushed_in > 0.0:
-                speed_out = max(speed_out, 0.5 * pushed_in * self.collapse_time)
             mass = 1.0 / s.inv_mass[p]
             ctx.stats.add_dissipated('walls', 0.5 * mass * (speed_in ** 2 - speed_out ** 2))
             s.velocity[p, axis] = -toward * speed_out
@@ -295,29 +331,71 @@ class EventDrivenStage(Stage):
     # -- the stage ---------------------------------------------------------
 
     def run(self, ctx: StepContext) -> None:
-        """Process every event up to the end of the step, then sync all particles."""
-        if not self._still_valid(ctx.state):
-            self._rebuild(ctx.state, ctx.dimensions)
+        """Process every event up to the end of the step, then sync all particles.
+
+        Falls back to the step solver for a step that would take more than
+        the event budget (see the module doc).
+        """
+        if self._hold:
+            self._hold -= 1
+            self._fallback_step(ctx)
+            return
+        state = ctx.state
+        if not self._still_valid(state):
+            self._rebuild(state, ctx.dimensions)
+        budget = max(MIN_EVENT_BUDGET, self.event_budget * len(state))
+        saved = (state.position.copy(), state.velocity.copy(), ctx.stats.copy(), self.events)
         end = self.time + ctx.dt
         heap, count = self.heap, self.count
+        taken = 0
         while heap and heap[0][0] <= end:
             when, _, kind, p, q, stamp_p, stamp_q = heapq.heappop(heap)
             if count[p] != stamp_p or (kind == PAIR and count[q] != stamp_q):
                 continue
+            taken += 1
             self.events += 1
-            if kind == PAIR:
-                self._pair_event(ctx, when, p, q)
-            elif kind == WALL:
-                self._wall_event(ctx, when, p, q)
-            else:
-                self._cell_event(when, p, q)
+            try:
+                if taken > budget:
+                    raise NotExactable
+                if kind == PAIR:
+                    self._pair_event(ctx, when, p, q)
+                elif kind == WALL:
+                    self._wall_event(ctx, when, p, q)
+                else:
+                    self._cell_event(when, p, q)
+            except NotExactable:
+                # Roll the step back and let the step solver take it.
+                state.position[:], state.velocity[:] = saved[0], saved[1]
+                ctx.stats.restore(saved[2])
+                self.events = saved[3]
+                self._fallback_streak += 1
+                self._hold = min(2 ** self._fallback_streak - 1, MAX_FALLBACK_HOLD)
+                self._fallback_step(ctx)
+                return
+        self._fallback_streak = 0
         self._sync_all(end)
         self.time = end
-        self._position_after = ctx.state.position.copy()
-        self._velocity_after = ctx.state.velocity.copy()
+        self._position_after = state.position.copy()
+        self._velocity_after = state.velocity.copy()
+
+    def _fallback_step(self, ctx: StepContext) -> None:
+        """Advance this step with the step solver (``EVENT_FALLBACK`` preset)."""
+        settings = PRESETS[EVENT_FALLBACK]
+        if self._fallback is None:
+            self._fallback = build_pipeline(self.effects, settings)
+        sub_dt = ctx.dt / settings.substeps
+        for _ in range(settings.substeps):
+            self._fallback.run(StepContext(state=ctx.state, dt=sub_dt,
+                                           dimensions=ctx.dimensions, effects=ctx.effects,
+                                           accuracy=settings, stats=ctx.stats))
+        ctx.stats.fallback_steps += 1
+        self.time += ctx.dt
+        self._state = None      # event mode starts afresh from the new state
 
     def describe(self) -> str:
         """Say what the stage does."""
         return ('exact event-driven: closed-form impact times (pairs, walls, gravity), '
                 f'heap with lazy invalidation, hash grid, TC model t_c = '
-                f'{self.collapse_time:g} s')
+                f'{self.collapse_time:g} s; a step needing more than '
+                f'{self.event_budget} events per particle falls back to the '
+                f'{EVENT_FALLBACK} step solver')
