@@ -74,7 +74,9 @@ def pair_impact_times(position: np.ndarray, velocity: np.ndarray, radius: np.nda
         normal, _ = line_of_action(raw, relative)
         approaching[unsure] = np.einsum('ij,ij->i', normal, relative) < 0.0
     hit = approaching & (overlapping | (disc >= 0.0))
-    with np.errstate(divide='ignore', invalid='ignore'):
+    # A pair closing at a subnormal speed (a collapsing cluster at rest)
+    # overflows to an impact time of inf: never, which is right.
+    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
         # c / (-b + sqrt(disc)) is the smaller root without cancellation.
         delay = np.where(overlapping, 0.0, c / (-half_b + np.sqrt(np.maximum(disc, 0.0))))
     return np.where(hit, start + delay, np.inf)
@@ -88,7 +90,8 @@ def wall_impact_times(position: np.ndarray, velocity: np.ndarray, radius: np.nda
     a wall and moving further out impacts at once.
     """
     times = np.full((position.shape[0], 2 * dimensions), np.inf)
-    with np.errstate(divide='ignore', invalid='ignore'):
+    # A subnormal speed overflows the time to inf (never), which is right.
+    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
         for axis in range(dimensions):
             p, v = position[:, axis], velocity[:, axis]
             gap_low = p - (walls.low[axis] + radius)
