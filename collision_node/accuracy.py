@@ -175,3 +175,20 @@ def check_event_mode(accuracy: AccuracySettings, effects: Any, where: str) -> No
         fail(where, f'mode event (preset exact) cannot simulate {", ".join(unsupported)} '
                     f'exactly (it supports {", ".join(EVENT_EFFECTS)}); '
                     'pick a step preset such as accurate')
+
+
+def check_event_particles(accuracy: AccuracySettings, effects: Any, inv_mass: Any,
+                          where: str) -> None:
+    """Refuse static particles (mass .inf) under gravity in event mode.
+
+    A falling particle's path relative to a static one is a parabola, not
+    the straight line the event mode's closed-form impact times assume.
+    ``where`` prefixes the field (``'s.yaml: '``, ``'spawn: '``).
+    """
+    if accuracy.mode != 'event' or effects.gravity is None:
+        return
+    static = [k for k, w in enumerate(inv_mass) if w == 0.0]
+    if static:
+        fail(f'{where}particles[{static[0]}].mass',
+             'a static particle (mass .inf) under gravity cannot be simulated exactly by '
+             'mode event (preset exact); pick a step preset such as accurate')

@@ -12,6 +12,7 @@ from typing import Optional
 import numpy as np
 
 from . import energy
+from .accuracy import check_event_particles
 from .effects import check_particles_for_effects
 from .pipeline import StepContext, StepStats, build_pipeline
 from .scene import Scene, parse_spawn
@@ -98,6 +99,8 @@ class World:
                              f'{len(self.state) + len(particles)}, over max_particles = '
                              f'{self.max_particles}')
         check_particles_for_effects(particles, self.scene.effects, 'spawn: ')
+        check_event_particles(self.scene.accuracy, self.scene.effects, particles.inv_mass,
+                              'spawn: ')
         first = len(self.state)
         ids = np.arange(first, first + len(particles), dtype=np.int64)
         added = self._with_spin_state(particles.with_arrays(ids=ids))

@@ -79,12 +79,34 @@ def test_event_mode_refuses_effects_it_cannot_do_exactly():
     check_event_mode(PRESETS['accurate'], WithDrag(drag=0.1), 'x')  # step mode: fine
 
 
-def test_event_mode_refuses_static_particles_under_gravity():
-    w = world('exact', effects={'gravity': [0, 0, -9.81]}, particles=[
-        {'position': [0, 0, 0], 'radius': 0.1, 'mass': 1.0},
-        {'position': [0, 0, -1], 'radius': 0.1, 'mass': float('inf')}])
-    with pytest.raises(SceneError, match='static particles'):
-        w.step()
+STATIC_UNDER_GRAVITY = [{'position': [0, 0, 0], 'radius': 0.1, 'mass': 1.0},
+                        {'position': [0, 0, -1], 'radius': 0.1, 'mass': float('inf')}]
+STATIC_MESSAGE = (r'^test-scene: particles\[1\]\.mass: a static particle \(mass \.inf\) under '
+                  r'gravity cannot be simulated exactly by mode event')
+
+
+def test_event_mode_refuses_static_particles_under_gravity_at_load():
+    with pytest.raises(SceneError, match=STATIC_MESSAGE):
+        world('exact', effects={'gravity': [0, 0, -9.81]}, particles=STATIC_UNDER_GRAVITY)
+    # The same scene under a step preset, then switched to exact (runner
+    # flag, node parameter): refused at the switch, not at the first step.
+    scene = parse_scene(dict(accuracy='accurate', effects={'gravity': [0, 0, -9.81]},
+                             particles=STATIC_UNDER_GRAVITY), 'test-scene')
+    with pytest.raises(SceneError, match=STATIC_MESSAGE):
+        scene.with_accuracy(PRESETS['exact'])
+    # Without gravity a static particle is fine in event mode.
+    world('exact', particles=STATIC_UNDER_GRAVITY).step()
+
+
+def test_event_mode_refuses_a_static_spawn_under_gravity_and_keeps_the_world():
+    w = world('exact', effects={'gravity': [0, 0, -9.81]}, particles=STATIC_UNDER_GRAVITY[:1])
+    w.step()
+    before = w.state.position.copy()
+    with pytest.raises(SceneError, match=r'^spawn: particles\[0\]\.mass: a static particle'):
+        w.spawn_text('{particles: [{position: [1, 0, 0], radius: 0.1, mass: .inf}]}')
+    assert len(w.state) == 1
+    np.testing.assert_array_equal(w.state.position, before)
+    w.step()                                       # and it goes on
 
 
 # -- exact mode: the lecture's formulas ---------------------------------------
