@@ -76,6 +76,17 @@ class StepContext:
     pair_i: Optional[np.ndarray] = None
     pair_j: Optional[np.ndarray] = None
     contacts: Optional[Contacts] = None
+    # Energy the effects had removed before this (sub)step, J: a stage can tell
+    # what this step has dissipated so far (separation uses it).
+    dissipated_before: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        """Note the dissipation booked so far."""
+        self.dissipated_before = sum(self.stats.dissipated.values())
+
+    def dissipated_now(self) -> float:
+        """Return the energy the effects removed so far in this (sub)step, J."""
+        return sum(self.stats.dissipated.values()) - self.dissipated_before
 
 
 class Stage:

@@ -88,17 +88,18 @@ def entering_time(gap: np.ndarray, rate: np.ndarray, curvature: np.ndarray) -> n
     ``gap`` >= 0 is inside; a gap at or below zero that is closing (or not
     opening while pushed in) counts as now. inf where it never happens.
     """
-    # An open side of the walls is a plane at infinity: its gap is inf, the
-    # products below are NaN and read as never.
-    with np.errstate(invalid='ignore'):
+    # An open side of the walls is a plane at infinity: its gap is inf and the
+    # products below are NaN; a subnormal rate overflows a time to inf. Both
+    # read as never, which is right.
+    with np.errstate(invalid='ignore', over='ignore', divide='ignore'):
         disc = rate * rate - 2.0 * curvature * gap
-    root = np.sqrt(np.maximum(disc, 0.0))
-    closing = rate < 0.0
-    curved = curvature != 0.0
-    # The entering root has slope -sqrt(disc); take its cancellation-free form.
-    quadratic = np.where(closing, 2.0 * gap / np.where(closing, root - rate, 1.0),
-                         (-rate - root) / np.where(curved, curvature, 1.0))
-    linear = np.where(closing, gap / np.where(closing, -rate, 1.0), np.inf)
+        root = np.sqrt(np.maximum(disc, 0.0))
+        closing = rate < 0.0
+        curved = curvature != 0.0
+        # The entering root has slope -sqrt(disc); take its cancellation-free form.
+        quadratic = np.where(closing, 2.0 * gap / np.where(closing, root - rate, 1.0),
+                             (-rate - root) / np.where(curved, curvature, 1.0))
+        linear = np.where(closing, gap / np.where(closing, -rate, 1.0), np.inf)
     s = np.where(curved, np.where(disc >= 0.0, quadratic, np.inf), linear)
     s[~(s > 0.0)] = np.inf
     s[(gap <= 0.0) & (closing | ((rate == 0.0) & (curvature < 0.0)))] = 0.0
