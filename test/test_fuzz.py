@@ -14,7 +14,10 @@ Invariants after every step:
   drag or static particles): to 1e-12 of the sum of |m v|;
 - total energy (kinetic, rotational and gravitational potential) never
   increases (all e <= 1): by at most 1e-12 of the kinetic energy plus
-  each particle's |m g . x|;
+  each particle's |m g . x|, plus, under gravity, m |g| times the deepest
+  overlap left by the step before, summed over the particles (separation
+  restoring height that an earlier step lost to overlap: found by the
+  fuzzer, 2.7e-8 J when two balls came to rest on a floor);
 - starting without overlap and without static particles, no overlap ever
   exceeds three steps of closing travel, 6 v_max dt (v_max: the largest
   speed seen so far): one step for a pair; squeezes of a small ball whose
@@ -161,6 +164,19 @@ GLANCING_OFF_A_STATIC_BALL = {
                    'velocity': [0.0, -0.3737046593418299, -0.33218191941495995]}]}
 
 
+# And then: two balls coming to rest on a floor. The sweeps left them sinking
+# at the solver's tolerance and separation lifted them back each step (fixed:
+# shock passes finish at tolerance 0); the projection also restores overlap
+# left by the step before (the stated allowance above).
+TWO_BALLS_COME_TO_REST_ON_A_FLOOR = {
+    'dimensions': 3, 'dt': 0.01, 'accuracy': 'accurate',
+    'effects': {'walls': {'min': [-1.0, -1.0, -1.0], 'max': [1.0, 1.0, 1.0], 'restitution': 0.0},
+                'gravity': [0.0, 0.0, -1.0]},
+    'particles': [{'position': [0.0, 0.0, 0.0], 'radius': 0.1, 'mass': 1.0},
+                  {'position': [0.0, 0.0, 0.5], 'velocity': [0.0, 0.0, -0.5], 'radius': 0.1,
+                   'mass': 1.0}]}
+
+
 # Found by the deep profile: a 1 cm ball squeezed in a converging column (e = 0)
 # reaches 1.33 steps of closing travel before the column resolves.
 SQUEEZED_COLUMN = {
@@ -187,6 +203,7 @@ SQUEEZED_STAR = {
 @example(SQUEEZED_STAR)
 @example(BOUNCE_ON_A_STATIC_BALL)
 @example(GLANCING_OFF_A_STATIC_BALL)
+@example(TWO_BALLS_COME_TO_REST_ON_A_FLOOR)
 @example(SQUEEZED_COLUMN)
 @example(PRESSED_AGAINST_A_WALL)
 @example(PRESSED_AGAINST_A_STATIC_BALL)
@@ -210,6 +227,10 @@ def test_fuzz_invariants_hold_after_every_step(scene):
         energy_scale = (before['kinetic_linear'] + before['kinetic_rotational']
                         + float(np.sum(np.abs(s.position[dynamic] @ gravity)
                                        / s.inv_mass[dynamic])))
+        # Separation may restore height that earlier steps lost to overlap: at most
+        # m |g| times the deepest overlap left at the start of this step, per particle.
+        restore = (max_penetration(world) * float(np.linalg.norm(gravity))
+                   * float(np.sum(1.0 / s.inv_mass[dynamic])))
         momentum = world.momentum()
         momentum_scale = float(np.sum(np.linalg.norm(s.velocity[~static], axis=1)
                                       / s.inv_mass[~static]))
@@ -222,7 +243,7 @@ def test_fuzz_invariants_hold_after_every_step(scene):
             np.testing.assert_array_equal(s.position[:, 2], 0.0, err_msg=where)
             np.testing.assert_array_equal(s.velocity[:, 2], 0.0, err_msg=where)
         after = world.energy()
-        assert after['total'] <= before['total'] + ENERGY_TOLERANCE * energy_scale, where
+        assert after['total'] <= before['total'] + ENERGY_TOLERANCE * energy_scale + restore, where
         if isolated:
             drift = np.max(np.abs(world.momentum() - momentum))
             assert drift <= MOMENTUM_TOLERANCE * momentum_scale, where
