@@ -416,7 +416,7 @@ def hexagonal_pile(radius: float, rows: int, per_row: int) -> list:
 
 
 # Steps of the 500-disc pile per preset in the fast profile: the `accurate`
-# solver (also exact's fallback) takes about 1.3 s a step on it.
+# solver (also exact's fallback) takes 1.3 to 1.7 s a step on it.
 PILE_STEPS = {'fast': 72, 'balanced': 72, 'accurate': 12, 'exact': 12}
 
 
@@ -428,10 +428,10 @@ def test_case07_pile_of_500_never_gains_energy_and_does_not_jitter(
     Total energy never rises at any step (1e-12 relative); over the last
     12 steps (50 ms) no speed reaches the restitution threshold
     2 |g| dt = 0.082 m/s, below which contact is resting (measured over
-    0.25 to 0.5 s: 0.065 m/s `fast`, 0.051 `balanced`, 0.0017 `accurate`;
+    0.25 to 0.5 s: 0.065 m/s `fast`, 0.038 `balanced`, 0.0037 `accurate`;
     the first steps, while the packing settles by a fraction of a
     millimetre, reach 0.24 m/s under `fast` and `balanced`);
-    no disc moves sideways by more than 2 mm (measured 1.4 mm `fast`).
+    no disc moves sideways by more than 2 mm (measured 1.1 mm `fast`).
     Fast profile: 72 steps, 12 for `accurate` and `exact`; deep: 120.
     """
     radius = 0.05
