@@ -45,16 +45,14 @@ Settings
     ``t_c`` of the TC model in event mode, seconds: an impact within t_c of
     either particle's previous impact is treated as elastic, so inelastic
     collapse (infinitely many impacts in finite time when e < 1) cannot
-    stall the event loop. A particle resting on a wall under gravity then
-    hops with a period of about t_c (it costs about 1/t_c events per
-    simulated second).
+    stall the event loop. Under gravity such an impact means resting
+    contact, and the step goes to the step solver instead (below).
 ``event_budget``
     Event mode: events (impacts, cell crossings) a step may take, per
-    particle (at least ``MIN_EVENT_BUDGET`` in all). A step that needs more
-    is rolled back and solved by the ``accurate`` step solver instead (see
-    ``stages/event_driven.py``): resting contact under gravity (the TC
-    model makes a resting particle hop every t_c, hundreds of events per
-    step) and dense clusters. Counted as ``fallback_steps`` in the stats.
+    particle (at least ``MIN_EVENT_BUDGET`` in all). A step that needs more,
+    or that meets resting contact under gravity, is rolled back and solved
+    by the ``accurate`` step solver instead (see ``stages/event_driven.py``;
+    counted as ``fallback_steps`` in the stats).
 
 Presets
 -------
