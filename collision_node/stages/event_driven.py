@@ -334,8 +334,9 @@ class EventDrivenStage(Stage):
     def run(self, ctx: StepContext) -> None:
         """Process every event up to the end of the step, then sync all particles.
 
-        Falls back to the step solver for a step that would take more than
-        the event budget (see the module doc).
+        A step that meets resting contact under gravity, or would take more
+        events than its budget, is rolled back and solved by the step solver
+        (see the module doc).
         """
         if self._hold:
             self._hold -= 1
@@ -397,6 +398,6 @@ class EventDrivenStage(Stage):
         """Say what the stage does."""
         return ('exact event-driven: closed-form impact times (pairs, walls, gravity), '
                 f'heap with lazy invalidation, hash grid, TC model t_c = '
-                f'{self.collapse_time:g} s; a step needing more than '
-                f'{self.event_budget} events per particle falls back to the '
+                f'{self.collapse_time:g} s; a step with resting contact under gravity or '
+                f'more than {self.event_budget} events per particle is solved by the '
                 f'{EVENT_FALLBACK} step solver')

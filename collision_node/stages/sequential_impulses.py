@@ -89,8 +89,9 @@ class WallContacts:
 
         With a restitution threshold e is the wall's only for a particle
         approaching faster than it that arrived so (an impact) or was
-        ``struck`` in this solve, as for pairs; a bounce marks it struck. Returns the mask of
-        particles hit, or None when none approached.
+        ``struck`` in this solve, as for pairs; a fast bounce marks it
+        struck. Returns the mask of particles hit, or None when none
+        approached.
         """
         index = self.index
         u = self.inward * state.velocity[index, self.axis]
@@ -275,9 +276,9 @@ class SequentialImpulseStage(Stage):
                 break
         if shock and len(contacts):
             # The sweeps stop at the tolerance, which leaves a stack sinking at up
-            # to that speed; separation would then lift it back every step and
-            # add m g v dt (found by the fuzzer: 2.7e-8 J on two balls resting on a
-            # floor). The shock passes finish resting contact exactly (tolerance 0).
+            # to that speed and separation lifting it back every step (found by
+            # the fuzzer: two balls resting on a floor kept -4.9e-6 m/s). The
+            # shock passes finish resting contact exactly (tolerance 0).
             # Walls are the bottom of every pile: solve them first and after each pass.
             for wall in walls:
                 wall.solve(state, 0.0, planar, lost, struck)
