@@ -71,6 +71,7 @@ from __future__ import annotations
 from dataclasses import dataclass, fields, replace
 from typing import Any
 
+import numpy as np
 import yaml
 
 from .validation import fail, integer, number, reject_unknown_keys
@@ -185,8 +186,8 @@ def check_event_particles(accuracy: AccuracySettings, effects: Any, inv_mass: An
     """
     if accuracy.mode != 'event' or effects.gravity is None:
         return
-    static = [k for k, w in enumerate(inv_mass) if w == 0.0]
-    if static:
-        fail(f'{where}particles[{static[0]}].mass',
+    static = np.flatnonzero(np.asarray(inv_mass) == 0.0)
+    if static.size:
+        fail(f'{where}particles[{int(static[0])}].mass',
              'a static particle (mass .inf) under gravity cannot be simulated exactly by '
              'mode event (preset exact); pick a step preset such as accurate')

@@ -164,8 +164,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f'momentum change: {d_momentum:.3g} kg m/s; '
               f'max penetration: {world.stats.max_penetration:.3g} m')
         if world.stats.fallback_steps:
-            print(f'event mode: {world.stats.fallback_steps} of {world.steps} steps needed '
-                  'more events than its budget and were solved by the step fallback')
+            print(f'event mode: {world.stats.fallback_steps} of {world.steps} steps met resting '
+                  'contact under gravity or passed the event budget and were solved by the '
+                  'step fallback')
     return 0
 
 

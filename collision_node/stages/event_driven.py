@@ -47,7 +47,8 @@ attempt only now and then.
 Scenes with an effect other than particles, walls, restitution and gravity
 are refused (:func:`collision_node.accuracy.check_event_mode`), and so are
 static particles (mass .inf) under gravity, whose relative motion against a
-falling particle is not a straight line.
+falling particle is not a straight line
+(:func:`collision_node.accuracy.check_event_particles`).
 """
 
 from __future__ import annotations
@@ -58,13 +59,12 @@ from typing import Optional
 
 import numpy as np
 
-from ..accuracy import (AccuracySettings, check_event_mode, EVENT_FALLBACK, MIN_EVENT_BUDGET,
-                        PRESETS)
+from ..accuracy import (AccuracySettings, check_event_mode, check_event_particles,
+                        EVENT_FALLBACK, MIN_EVENT_BUDGET, PRESETS)
 from ..effects import Effects
 from ..impulse import apply_normal_impulses
 from ..pipeline import build_pipeline, Pipeline, Stage, StepContext
 from ..state import ParticleState
-from ..validation import SceneError
 from .narrowphase import line_of_action
 from .swept_contacts import pair_impact_times
 
@@ -127,7 +127,7 @@ class EventDrivenStage(Stage):
         self.restitution = effects.particle_restitution
         self.collapse_time = accuracy.collapse_time
         self.event_budget = accuracy.event_budget
-        self.effects = effects
+        self.accuracy, self.effects = accuracy, effects
         self.under_gravity = bool(np.any(self.gravity != 0.0))
         self.time = 0.0
         self.events = 0
@@ -141,9 +141,9 @@ class EventDrivenStage(Stage):
     def _rebuild(self, state: ParticleState, dimensions: int) -> None:
         """Set up clocks, grid and predictions for ``state`` at ``self.time``."""
         n = len(state)
-        if np.any(self.gravity != 0.0) and not np.all(state.dynamic):
-            raise SceneError('accuracy: mode event cannot simulate static particles (mass '
-                             '.inf) under gravity exactly; pick a step preset such as accurate')
+        # Scenes, accuracy switches and spawns are checked on entry; this guards
+        # a state handed to the stage some other way, with the same message.
+        check_event_particles(self.accuracy, self.effects, state.inv_mass, '')
         self._state = state
         self.dims = dimensions
         self.ref_time = np.full(n, self.time)
