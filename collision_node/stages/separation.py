@@ -199,7 +199,8 @@ class SeparationStage(Stage):
     def describe(self) -> str:
         """Say what the stage does."""
         text = ('position projection along N shared by inverse mass (velocities untouched; '
-                f'{GRAVITY_PASSES} passes under gravity)')
+                f'under gravity {GRAVITY_PASSES} passes, and a lift beyond the step\'s losses '
+                'is paid from the lifted particles\' speed)')
         if self.walls is not None:
             text += ', then back onto wall planes'
         return text
