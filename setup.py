@@ -24,8 +24,8 @@ setup(
     tests_require=['pytest'],
     entry_points={
         'console_scripts': [
-            'collision_node = collision_node.node:main',
-            'viewer = collision_node.viewer:main',
+            'collision_node = collision_node.ros.node:main',
+            'viewer = collision_node.ros.viewer:main',
             'simulate = collision_node.simulate:main',
         ],
     },

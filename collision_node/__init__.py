@@ -1,13 +1,13 @@
 """collision_node: impulse collisions between spherical particles.
 
-The core (everything importable from here) is pure numpy and imports no
-ROS module; ``collision_node.node`` is the ROS 2 node built on top of it.
+``collision_node.physics`` is the core: pure numpy, no ROS module; its
+public names are re-exported here. ``collision_node.ros`` holds the ROS 2
+front ends (the node and the viewer), ``collision_node.simulate`` the
+offline runner, and ``collision_node.bench`` the benchmarks.
 """
 
-from .scene import Scene, load_scene, parse_scene, parse_scene_text, parse_spawn
-from .state import ParticleState
-from .validation import SceneError
-from .world import NonFiniteStateError, World
+from .physics import (NonFiniteStateError, ParticleState, Scene, SceneError, World, load_scene,
+                      parse_scene, parse_scene_text, parse_spawn)
 
 __all__ = ['NonFiniteStateError', 'ParticleState', 'Scene', 'SceneError', 'World',
            'load_scene', 'parse_scene', 'parse_scene_text', 'parse_spawn']

@@ -17,10 +17,10 @@ from typing import Optional, Sequence
 import numpy as np
 from tqdm import tqdm
 
-from .accuracy import parse_accuracy_text
-from .scene import load_scene
-from .validation import SceneError
-from .world import NonFiniteStateError, World
+from .physics.accuracy import parse_accuracy_text
+from .physics.scene import load_scene
+from .physics.validation import SceneError
+from .physics.world import NonFiniteStateError, World
 
 # Runs shorter than this never show a progress bar.
 PROGRESS_DELAY_S = 2.0

@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 
 from collision_node import SceneError, World, load_scene, parse_scene
-from collision_node.accuracy import PRESETS, AccuracySettings, check_event_mode, parse_accuracy
-from collision_node.bench_accuracy import missed_collisions
-from collision_node.effects import Effects
+from collision_node.physics.accuracy import (PRESETS, AccuracySettings, check_event_mode,
+                                             parse_accuracy)
+from collision_node.physics.reference import missed_collisions
+from collision_node.physics.effects import Effects
 from collision_node.simulate import main as simulate_main
-from collision_node.stages.broadphase import ALL_PAIRS_UP_TO
+from collision_node.physics.stages.broadphase import ALL_PAIRS_UP_TO
 
 
 def world(accuracy, **scene) -> World:

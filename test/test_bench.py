@@ -7,7 +7,7 @@ import math
 import pytest
 
 from collision_node import bench
-from collision_node.bench_throughput import gas_scene, growth_exponent
+from collision_node.bench.throughput import gas_scene, growth_exponent
 
 
 def test_throughput_prints_a_markdown_row_per_count(capsys):

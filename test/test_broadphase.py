@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from collision_node import World, parse_scene
-from collision_node.pipeline import Stage, StepContext
-from collision_node.stages import broadphase as broadphase_module
-from collision_node.stages.broadphase import BroadphaseStage, candidate_pairs
+from collision_node.physics.step import Stage, StepContext
+from collision_node.physics.stages import broadphase as broadphase_module
+from collision_node.physics.stages.broadphase import BroadphaseStage, candidate_pairs
 
 
 def brute_force_overlaps(position: np.ndarray, radius: np.ndarray) -> set:

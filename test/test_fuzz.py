@@ -38,7 +38,7 @@ import numpy as np
 from hypothesis import assume, event, example, given, strategies as st
 
 from collision_node import World, parse_scene
-from collision_node.accuracy import PRESETS
+from collision_node.physics.accuracy import PRESETS
 from conftest import HYPOTHESIS_PROFILE
 from test_hard_cases import max_penetration
 

@@ -18,17 +18,17 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Empty, String
 from std_srvs.srv import Trigger
 
-from collision_node.node import CUE_SPEED
 from msg_adapters import state_from_point_cloud
 from node_harness import NodeUnderTest, output
 
-PARTICLES = 16
+PARTICLES = 16           # the default scene, scenes/elastic_break.yaml
+CUE_SPEED = 5.0
 MAX_PARTICLES = 40
 
 
 @pytest.fixture(scope='module')
 def node():
-    """One paused node on the embedded scene, shared by the tests of this module."""
+    """One paused node on the default scene, shared by the tests of this module."""
     running = NodeUnderTest(['-p', 'paused:=true', '-p', f'max_particles:={MAX_PARTICLES}',
                              '-p', 'publish_rate:=30.0'])
     running.clouds = running.probe.collect(PointCloud2, 'particles/state', 10)
@@ -89,7 +89,7 @@ def assert_same_world(a: dict, b: dict) -> None:
         np.testing.assert_array_equal(a[key], b[key])
 
 
-def test_initial_world_is_the_embedded_break(node):
+def test_initial_world_is_the_default_break(node):
     assert node.initial['ids'].tolist() == list(range(PARTICLES))
     np.testing.assert_array_equal(node.initial['position'][0], [-0.635, 0.0, 0.0])
     np.testing.assert_array_equal(node.initial['velocity'][0], [CUE_SPEED, 0.0, 0.0])

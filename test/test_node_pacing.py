@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from collision_node.node import Pacer, RateMeter, default_scene_text
-from collision_node import parse_scene_text, World
+from collision_node import load_scene, World
+from collision_node.ros.pacing import Pacer, RateMeter
+from collision_node.ros.parameters import DEFAULT_SCENE, PARAMETERS
 
 
 def test_steps_due_follow_wall_time_times_factor():
@@ -38,8 +39,9 @@ def test_rate_meter_measures_over_its_window():
     assert meter.rates() == (0.0, 0.0)
 
 
-def test_embedded_default_scene_is_a_valid_break_with_collisions_soon():
-    world = World(parse_scene_text(default_scene_text(), 'embedded'))
+def test_default_scene_is_a_valid_break_with_collisions_soon():
+    assert PARAMETERS['scene'][0] == DEFAULT_SCENE == 'elastic_break'
+    world = World(load_scene(DEFAULT_SCENE))
     assert len(world.state) == 16 and world.scene.dimensions == 2
     world.step(round(0.5 / world.dt))
     assert world.stats.collisions > 0

@@ -14,18 +14,21 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import Marker, MarkerArray
 
-from collision_node.node import BALL_MASS, BALL_RADIUS, CUE_SPEED
 from msg_adapters import (particle_id_from_frame, poses_from_pose_array, seconds_from_stamp,
                           state_from_point_cloud)
 from node_harness import NodeUnderTest
 
 RATE = 20.0
-PARTICLES = 16           # the embedded billiards break
+# The default scene, scenes/elastic_break.yaml: a billiards break.
+PARTICLES = 16
+BALL_RADIUS = 0.028575
+BALL_MASS = 0.17
+CUE_SPEED = 5.0
 
 
 @pytest.fixture(scope='module')
 def node():
-    """One node on the embedded default scene, publishing at RATE, in a namespace."""
+    """One node on the default scene, publishing at RATE, in a namespace."""
     running = NodeUnderTest(['-p', f'publish_rate:={RATE}'], namespace='/table')
     yield running
     code, _, err = running.stop()

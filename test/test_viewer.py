@@ -6,7 +6,7 @@ import matplotlib.image
 import numpy as np
 import pytest
 
-from collision_node.viewer import draw_snapshot, parse_arguments, summary_line
+from collision_node.ros.viewer import draw_snapshot, parse_arguments, summary_line
 
 STATUS = {'scene': 'gas', 'particles': 1000, 'time': 12.3456, 'real_time_factor': 1.0,
           'measured_real_time_factor': 0.987, 'collisions_per_second': 412.25,

@@ -1,7 +1,7 @@
 """Benchmark: cost of each effect alone and of all together, per step.
 
     python -m collision_node.bench effects [--count N] [--steps K] [--repeats R]
-    python -m collision_node.bench_effects [same options]
+    python -m collision_node.bench.effects [same options]
 
 Runs the gas of ``scenes/gas_10k.yaml`` (10,000 particles of r = 5 cm,
 1 kg, 1 m/s in a 5 m cube, dt = 1/240 s, about 80 collisions per step;
@@ -23,8 +23,8 @@ import sys
 import time
 from typing import Optional, Sequence
 
-from .scene import parse_scene
-from .world import World
+from ..physics.scene import parse_scene
+from ..physics.world import World
 
 REFERENCE_COUNT = 10_000
 REFERENCE_HALF = 2.5                         # m, half the side of gas_10k's cube

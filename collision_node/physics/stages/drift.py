@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ..pipeline import Stage, StepContext
+from ..step import Stage, StepContext
 
 
 class DriftStage(Stage):

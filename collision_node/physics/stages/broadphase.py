@@ -25,7 +25,7 @@ from typing import Optional
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..pipeline import Stage, StepContext
+from ..step import Stage, StepContext
 
 # A particle whose radius exceeds this multiple of the median is "large":
 # its pairs are found by a query of its own instead of widening the

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..effects import Drag
 from ..energy import mechanical
-from ..pipeline import Stage, StepContext
+from ..step import Stage, StepContext
 
 # Below this lambda dt, (dt - phi) / lambda uses its Taylor series (the
 # closed form cancels there); the first term left out is below 5e-14

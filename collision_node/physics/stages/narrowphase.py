@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..pipeline import Contacts, Stage, StepContext
+from ..step import Contacts, Stage, StepContext
 
 
 def line_of_action(offset: np.ndarray, relative_velocity: np.ndarray

@@ -1,7 +1,7 @@
 """Benchmark the node: cost per publish tick of each output, and the real-time factor.
 
     python -m collision_node.bench node [--sizes 1000 10000] [--seconds 5] [--repeat 20]
-    python -m collision_node.bench_node ...      (the same)
+    python -m collision_node.bench.node ...      (the same)
 
 Part 1 builds every output from a gas world of N particles with
 :mod:`msg_adapters` and publishes it through a real rclpy publisher
@@ -40,10 +40,11 @@ from visualization_msgs.msg import MarkerArray
 from msg_adapters import (clock_message, marker_array_bytes, point_cloud_bytes,
                           pose_array_bytes, time_message, velocities_bytes)
 
-from . import parse_scene_text
-from .node import STATE_QOS, VELOCITY_QOS, CollisionNode
-from .state import ParticleState
-from .world import World
+from ..physics import parse_scene_text
+from ..physics.state import ParticleState
+from ..physics.world import World
+from ..ros.node import CollisionNode
+from ..ros.qos import STATE_QOS, VELOCITY_QOS
 
 GAS_RADIUS = 0.05     # m
 GAS_SPEED = 1.0       # m/s
@@ -246,7 +247,7 @@ def run(args: argparse.Namespace) -> int:
     if any(n < 1 for n in args.sizes) or args.seconds <= 0 or args.repeat < 1:
         print('bench node: sizes, seconds and repeat must be positive', file=sys.stderr)
         return 2
-    sink = subprocess.Popen([sys.executable, '-m', 'collision_node.bench_node', '--sink'])
+    sink = subprocess.Popen([sys.executable, '-m', 'collision_node.bench.node', '--sink'])
     rclpy.init()
     try:
         load = os.getloadavg()
@@ -266,8 +267,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: Optional[list[str]] = None) -> int:
-    """Parse options and run (``python -m collision_node.bench_node``)."""
-    parser = argparse.ArgumentParser(prog='python -m collision_node.bench_node',
+    """Parse options and run (``python -m collision_node.bench.node``)."""
+    parser = argparse.ArgumentParser(prog='python -m collision_node.bench.node',
                                      description=__doc__.split('\n')[0])
     add_arguments(parser)
     return run(parser.parse_args(argv))

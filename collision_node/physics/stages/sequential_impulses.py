@@ -40,7 +40,7 @@ from ..effects import Walls, combine
 from ..energy import kinetic_linear
 from ..friction import apply_pair_friction, apply_wall_friction
 from ..impulse import apply_normal_impulses, apply_normal_impulses_booked, closing_speed
-from ..pipeline import Contacts, Stage, StepContext
+from ..step import Contacts, Stage, StepContext
 
 # Past this many colours (only in very dense clusters, e.g. a thousand
 # particles spawned on one point) the remaining pairs share their impulses

@@ -38,7 +38,7 @@ import numpy as np
 
 from ..effects import Walls, combine
 from ..impulse import apply_normal_impulses
-from ..pipeline import Stage, StepContext
+from ..step import Stage, StepContext
 from .batched_impulses import shared_scale
 from .broadphase import BroadphaseStage
 from .narrowphase import line_of_action

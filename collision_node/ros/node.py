@@ -1,7 +1,7 @@
 """The collision_node ROS 2 node: a live particle world on topics.
 
 The node owns timing and ROS I/O only: the physics is a core
-:class:`~collision_node.world.World`, and every numpy-to-message
+:class:`~collision_node.physics.world.World`, and every numpy-to-message
 conversion lives in :mod:`msg_adapters`. Topics, QoS and parameters are
 tabled in the README (section "The ROS 2 node").
 """
@@ -9,21 +9,17 @@ tabled in the README (section "The ROS 2 node").
 from __future__ import annotations
 
 import json
-import math
 import time
-from collections import deque
 from typing import Any, Optional
 
 import rclpy
 from geometry_msgs.msg import PoseArray, VelocityStamped
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                ParameterType, SetParametersResult)
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Empty, String
@@ -33,168 +29,17 @@ from visualization_msgs.msg import MarkerArray
 from msg_adapters import (clock_message, marker_array_bytes, point_cloud_bytes,
                           pose_array_bytes, velocities_bytes)
 
-from .accuracy import parse_accuracy_text
-from .scene import Scene, load_scene, parse_scene_text
-from .validation import SceneError
-from .world import NonFiniteStateError, World
+from ..physics.accuracy import parse_accuracy_text
+from ..physics.scene import load_scene
+from ..physics.validation import SceneError
+from ..physics.world import NonFiniteStateError, World
+from .pacing import BACKLOG_KEPT, Pacer, RateMeter, STEP_BUDGET
+from .parameters import DEFAULT_SCENE, invalid_parameter, PARAMETERS
+from .qos import COMMAND_QOS, STATE_QOS, STATUS_QOS, VELOCITY_QOS
+from .status import status_report
 
 NODE_NAME = 'collision_node'
-
-
-def reliable_qos(depth: int, durability: DurabilityPolicy = DurabilityPolicy.VOLATILE
-                 ) -> QoSProfile:
-    """Return a reliable keep-last profile (a best-effort publisher reaches no default sub)."""
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
-                      reliability=ReliabilityPolicy.RELIABLE, durability=durability)
-
-
-# State streams: keep only the newest tick; a late tick is worth less than the next one.
-STATE_QOS = reliable_qos(1)
-# Velocities: one message per particle per tick, so the queue holds a tick's burst.
-VELOCITY_QOS = reliable_qos(1000)
-# Commands and their answers: a deeper queue, none may be lost.
-COMMAND_QOS = reliable_qos(50)
-# Status: the newest one, kept for late joiners (a viewer started later).
-STATUS_QOS = reliable_qos(1, DurabilityPolicy.TRANSIENT_LOCAL)
-
 STATUS_PERIOD = 0.5          # s of wall time between status messages
-RATE_WINDOW = 2.0            # s of wall time over which rates are measured
-STEP_BUDGET = 0.8            # share of a tick period the physics may use
-BACKLOG_KEPT = 0.25          # s of wall time the physics may lag once it fell behind
-
-
-# The embedded default scene: pool balls (SI) and the cue ball's speed.
-BALL_RADIUS = 0.028575
-BALL_MASS = 0.17
-CUE_SPEED = 5.0
-
-
-def default_scene_text() -> str:
-    """Return the embedded default scene: a 2-D billiards break (YAML).
-
-    Fifteen balls racked in a triangle and a cue ball at 5 m/s on an
-    elastic 2.54 m x 1.27 m table, dt = 1/240 s (the cue ball moves 0.4
-    radii per step): the first collision comes after about 0.25 s and the
-    balls keep colliding.
-    """
-    radius, mass = BALL_RADIUS, BALL_MASS
-    gap = 2.0 * radius * 1.001
-    lines = [
-        'name: elastic_break',
-        'dimensions: 2',
-        'dt: 0.004166666666666667',
-        'duration: 10.0',
-        'effects:',
-        '  walls: {min: [-1.27, -0.635], max: [1.27, 0.635]}',
-        'particles:',
-        f'  - {{position: [-0.635, 0.0], velocity: [{CUE_SPEED}, 0.0], radius: {radius}, '
-        f'mass: {mass}}}',
-    ]
-    for row in range(5):
-        for k in range(row + 1):
-            x = 0.635 + row * gap * math.sqrt(3.0) / 2.0
-            y = (k - row / 2.0) * gap
-            lines.append(f'  - {{position: [{x:.6f}, {y:.6f}], radius: {radius}, '
-                         f'mass: {mass}}}')
-    return '\n'.join(lines) + '\n'
-
-
-class Pacer:
-    """Count the fixed steps due so that simulated time follows wall time x factor.
-
-    Simulated time is anchored to a wall instant; the anchor moves whenever
-    the factor changes, the world resumes or is reset, or the physics fell
-    behind (so a backlog is never chased beyond BACKLOG_KEPT: the world
-    runs slower instead, stepping all the time it is given).
-    """
-
-    def __init__(self, dt: float, factor: float, wall: float, sim_time: float) -> None:
-        """Anchor simulated time ``sim_time`` at wall time ``wall``."""
-        self.dt = dt
-        self.factor = factor
-        self.restart(wall, sim_time)
-
-    def restart(self, wall: float, sim_time: float) -> None:
-        """Re-anchor: from ``wall`` on, simulated time starts at ``sim_time``."""
-        self.wall_anchor = wall
-        self.sim_anchor = sim_time
-
-    def steps_due(self, wall: float, sim_time: float) -> int:
-        """Return the whole steps needed to bring ``sim_time`` up to the target."""
-        target = self.sim_anchor + (wall - self.wall_anchor) * self.factor
-        # The small tolerance keeps float noise from deferring a step a tick.
-        return max(0, math.floor((target - sim_time) / self.dt + 1e-9))
-
-
-class RateMeter:
-    """Rates over the last few seconds of wall time from cumulative counters."""
-
-    def __init__(self, window: float = RATE_WINDOW) -> None:
-        """Keep samples no older than ``window`` seconds."""
-        self.window = window
-        self.samples: deque[tuple[float, float, float]] = deque()
-
-    def clear(self) -> None:
-        """Forget every sample (after a reset the counters restart)."""
-        self.samples.clear()
-
-    def add(self, wall: float, sim_time: float, collisions: float) -> None:
-        """Record cumulative simulated time and collisions at ``wall``."""
-        self.samples.append((wall, sim_time, collisions))
-        while len(self.samples) > 2 and wall - self.samples[0][0] > self.window:
-            self.samples.popleft()
-
-    def rates(self) -> tuple[float, float]:
-        """Return (real-time factor, collisions per wall second) over the window."""
-        if len(self.samples) < 2:
-            return 0.0, 0.0
-        (w0, s0, c0), (w1, s1, c1) = self.samples[0], self.samples[-1]
-        if w1 <= w0:
-            return 0.0, 0.0
-        return (s1 - s0) / (w1 - w0), (c1 - c0) / (w1 - w0)
-
-
-def _descriptor(description: str, kind: int, read_only: bool = False,
-                floats: Optional[tuple[float, float]] = None,
-                integers: Optional[tuple[int, int]] = None) -> ParameterDescriptor:
-    """Return a parameter descriptor with an optional inclusive range."""
-    descriptor = ParameterDescriptor(description=description, type=kind, read_only=read_only)
-    if floats is not None:
-        descriptor.floating_point_range = [
-            FloatingPointRange(from_value=floats[0], to_value=floats[1], step=0.0)]
-    if integers is not None:
-        descriptor.integer_range = [
-            IntegerRange(from_value=integers[0], to_value=integers[1], step=1)]
-    return descriptor
-
-
-PARAMETERS: dict[str, tuple[Any, ParameterDescriptor]] = {
-    'scene': ('', _descriptor(
-        'Scene file path or shipped scene name; empty: the embedded elastic billiards break',
-        ParameterType.PARAMETER_STRING, read_only=True)),
-    'accuracy': ('', _descriptor(
-        "Accuracy preset name or YAML mapping (e.g. '{preset: fast, substeps: 2}') "
-        "overriding the scene's; empty: the scene's",
-        ParameterType.PARAMETER_STRING, read_only=True)),
-    'real_time_factor': (1.0, _descriptor(
-        'Simulated seconds per wall second (runtime-changeable)',
-        ParameterType.PARAMETER_DOUBLE, floats=(0.001, 1000.0))),
-    'publish_rate': (30.0, _descriptor(
-        'Hz of wall time at which outputs and /clock are published (runtime-changeable)',
-        ParameterType.PARAMETER_DOUBLE, floats=(0.1, 1000.0))),
-    'paused': (False, _descriptor(
-        'Stop stepping; outputs keep being published (runtime-changeable)',
-        ParameterType.PARAMETER_BOOL)),
-    'publish_clock': (True, _descriptor(
-        'Publish simulated time on /clock (runtime-changeable)',
-        ParameterType.PARAMETER_BOOL)),
-    'frame_id': ('world', _descriptor(
-        'Frame of every output header (runtime-changeable)',
-        ParameterType.PARAMETER_STRING)),
-    'max_particles': (100_000, _descriptor(
-        'Most particles the world may hold; larger spawns are rejected',
-        ParameterType.PARAMETER_INTEGER, read_only=True, integers=(1, 10_000_000))),
-}
 
 
 class CollisionNode(Node):
@@ -206,10 +51,10 @@ class CollisionNode(Node):
         for name, (default, descriptor) in PARAMETERS.items():
             self.declare_parameter(name, default, descriptor)
         value = self._parameter_values()
-        problem = self._invalid(value)
+        problem = invalid_parameter(value)
         if problem:
             raise SceneError(f'parameter {problem}')
-        self.scene = self._load_scene(value['scene'])
+        self.scene = load_scene(value['scene'] or DEFAULT_SCENE)
         if value['accuracy']:
             self.scene = self.scene.with_accuracy(
                 parse_accuracy_text(value['accuracy'], self.scene.effects,
@@ -264,20 +109,9 @@ class CollisionNode(Node):
         """Return every declared parameter's current value."""
         return {name: self.get_parameter(name).value for name in PARAMETERS}
 
-    @staticmethod
-    def _invalid(values: dict[str, Any]) -> Optional[str]:
-        """Return why a set of parameter values is invalid, or None."""
-        for name in ('real_time_factor', 'publish_rate'):
-            if name in values and not math.isfinite(values[name]):
-                return f'{name}: must be finite, got {values[name]!r}'
-        frame = values.get('frame_id')
-        if frame is not None and (not frame or frame != frame.strip() or ' ' in frame):
-            return f'frame_id: must be a non-empty name without spaces, got {frame!r}'
-        return None
-
     def _check_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
         """Refuse invalid values with a reason (types, ranges and read-only come first)."""
-        problem = self._invalid({p.name: p.value for p in parameters})
+        problem = invalid_parameter({p.name: p.value for p in parameters})
         if problem:
             self.get_logger().warning(f'refused parameter {problem}')
             return SetParametersResult(successful=False, reason=problem)
@@ -304,15 +138,6 @@ class CollisionNode(Node):
                 self.frame_id = p.value
             self.get_logger().info(f'parameter {p.name} = {p.value!r}')
         self._publish_status()
-
-    # -- scene ------------------------------------------------------------
-
-    def _load_scene(self, scene: str) -> Scene:
-        """Load the ``scene`` parameter, or the embedded default when empty."""
-        if scene:
-            return load_scene(scene)
-        return parse_scene_text(default_scene_text(), '<embedded elastic_break>',
-                                default_name='elastic_break')
 
     # -- stepping and publishing ------------------------------------------
 
@@ -379,30 +204,10 @@ class CollisionNode(Node):
 
     def status(self) -> dict[str, Any]:
         """Return the node's status as a JSON-ready mapping."""
-        rtf, collision_rate = self.meter.rates()
-        stats = self.world.stats
-        return {
-            'scene': self.scene.name,
-            'particles': len(self.world.state),
-            'time': self.world.time,
-            'steps': self.world.steps,
-            'dt': self.world.dt,
-            'paused': self.paused,
-            'real_time_factor': self.real_time_factor,
-            'measured_real_time_factor': rtf,
-            'keeping_up': self.keeping_up,
-            'collisions': stats.collisions,
-            'wall_collisions': stats.wall_collisions,
-            'fallback_steps': stats.fallback_steps,
-            'collisions_per_second': collision_rate,
-            'kinetic_energy': self.world.kinetic_energy(),
-            # Energy balance (see README, Effects): terms, losses per effect, error.
-            'energy': self.world.energy(),
-            'momentum': self.world.momentum().tolist(),
-            'publish_rate': self.publish_rate,
-            'frame_id': self.frame_id,
-            'error': self.failed,
-        }
+        return status_report(self.world, self.scene.name, self.meter.rates(),
+                             paused=self.paused, real_time_factor=self.real_time_factor,
+                             keeping_up=self.keeping_up, publish_rate=self.publish_rate,
+                             frame_id=self.frame_id, error=self.failed)
 
     def _publish_status(self) -> None:
         """Publish the status on ``status`` (JSON)."""

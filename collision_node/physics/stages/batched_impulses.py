@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..impulse import apply_normal_impulses, closing_speed
-from ..pipeline import Stage, StepContext
+from ..step import Stage, StepContext
 
 
 def shared_scale(i: np.ndarray, j: np.ndarray, active: np.ndarray, dynamic: np.ndarray,

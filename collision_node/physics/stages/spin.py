@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..pipeline import Stage, StepContext
+from ..step import Stage, StepContext
 
 
 def rotate(orientation: np.ndarray, angular_velocity: np.ndarray, dt: float) -> np.ndarray:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..pipeline import Stage, StepContext
+from ..step import Stage, StepContext
 
 
 class GravityStage(Stage):

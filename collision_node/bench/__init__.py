@@ -2,9 +2,9 @@
 
 Each subcommand lives in a module of its own that exposes
 ``add_arguments(parser)`` and ``run(args) -> int``. Registering one is a
-one-line change: add ``'NAME': 'collision_node.bench_NAME'`` to
+one-line change: add ``'NAME': 'collision_node.bench.NAME'`` to
 ``SUBCOMMANDS``. Modules are imported only when their subcommand runs, so
-one that needs ROS (``bench_node``) costs the others nothing.
+one that needs ROS (``bench.node``) costs the others nothing.
 """
 
 from __future__ import annotations
@@ -16,10 +16,10 @@ from typing import Optional, Sequence
 
 # Subcommand name -> module with add_arguments(parser) and run(args).
 SUBCOMMANDS: dict[str, str] = {
-    'throughput': 'collision_node.bench_throughput',
-    'node': 'collision_node.bench_node',
-    'effects': 'collision_node.bench_effects',
-    'accuracy': 'collision_node.bench_accuracy',
+    'throughput': 'collision_node.bench.throughput',
+    'node': 'collision_node.bench.node',
+    'effects': 'collision_node.bench.effects',
+    'accuracy': 'collision_node.bench.accuracy',
 }
 
 
@@ -40,7 +40,3 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         commands.add_parser(name)
     parser.parse_args(argv)  # prints usage and exits 2 for an unknown subcommand
     return 2
-
-
-if __name__ == '__main__':
-    sys.exit(main())

@@ -45,17 +45,17 @@ solver before event mode is tried again, so a pile at rest pays for the
 attempt only now and then.
 
 Scenes with an effect other than particles, walls, restitution and gravity
-are refused (:func:`collision_node.accuracy.check_event_mode`), and so are
+are refused (:func:`collision_node.physics.accuracy.check_event_mode`), and so are
 static particles (mass .inf) under gravity, whose relative motion against a
 falling particle is not a straight line
-(:func:`collision_node.accuracy.check_event_particles`).
+(:func:`collision_node.physics.accuracy.check_event_particles`).
 """
 
 from __future__ import annotations
 
 import heapq
 import itertools
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -63,7 +63,7 @@ from ..accuracy import (AccuracySettings, check_event_mode, check_event_particle
                         EVENT_FALLBACK, MIN_EVENT_BUDGET, PRESETS)
 from ..effects import Effects
 from ..impulse import apply_normal_impulses
-from ..pipeline import build_pipeline, Pipeline, Stage, StepContext
+from ..step import Pipeline, Stage, StepContext
 from ..state import ParticleState
 from .narrowphase import line_of_action
 from .swept_contacts import pair_impact_times
@@ -118,8 +118,13 @@ class EventDrivenStage(Stage):
 
     name = 'event_driven'
 
-    def __init__(self, effects: Effects, accuracy: AccuracySettings) -> None:
-        """Keep the effects it simulates; refuse any it cannot do exactly."""
+    def __init__(self, effects: Effects, accuracy: AccuracySettings,
+                 fallback: Callable[[], Pipeline]) -> None:
+        """Keep the effects it simulates; refuse any it cannot do exactly.
+
+        ``fallback`` builds the step-solver pipeline for the steps this stage
+        hands over (the plan passes it in, so no stage imports the plan).
+        """
         check_event_mode(accuracy, effects, 'accuracy')
         self.gravity = np.zeros(3) if effects.gravity is None else np.asarray(effects.gravity,
                                                                               float)
@@ -133,6 +138,7 @@ class EventDrivenStage(Stage):
         self.events = 0
         self._state: Optional[ParticleState] = None
         self._fallback: Optional[Pipeline] = None
+        self._build_fallback = fallback
         self._fallback_streak = 0
         self._hold = 0
 
@@ -384,7 +390,7 @@ class EventDrivenStage(Stage):
         """Advance this step with the step solver (``EVENT_FALLBACK`` preset)."""
         settings = PRESETS[EVENT_FALLBACK]
         if self._fallback is None:
-            self._fallback = build_pipeline(self.effects, settings)
+            self._fallback = self._build_fallback()
         sub_dt = ctx.dt / settings.substeps
         for _ in range(settings.substeps):
             self._fallback.run(StepContext(state=ctx.state, dt=sub_dt,

@@ -93,7 +93,8 @@ def shipped_scene_dirs() -> list[Path]:
     ``share/collision_node/scenes``.
     """
     here = Path(__file__).resolve().parent
-    candidates = [here.parent / 'scenes', Path(sys.prefix) / 'share' / 'collision_node' / 'scenes']
+    candidates = [here.parents[1] / 'scenes',
+                  Path(sys.prefix) / 'share' / 'collision_node' / 'scenes']
     for parent in here.parents:
         candidates.append(parent / 'share' / 'collision_node' / 'scenes')
     return [c for c in candidates if c.is_dir()]

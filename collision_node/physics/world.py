@@ -14,7 +14,8 @@ import numpy as np
 from . import energy
 from .accuracy import check_event_particles
 from .effects import check_particles_for_effects
-from .pipeline import StepContext, StepStats, build_pipeline
+from .plan import build_pipeline
+from .step import StepContext, StepStats
 from .scene import Scene, parse_spawn
 from .state import ParticleState
 from .validation import SceneError

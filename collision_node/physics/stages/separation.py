@@ -42,7 +42,7 @@ import numpy as np
 
 from ..effects import Walls
 from ..energy import potential
-from ..pipeline import Stage, StepContext
+from ..step import Stage, StepContext
 from .narrowphase import line_of_action
 
 # Projection passes per step under gravity (one without: the lecture's).

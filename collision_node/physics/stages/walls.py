@@ -33,7 +33,7 @@ import numpy as np
 from ..effects import Walls, combine
 from ..energy import mechanical
 from ..friction import apply_wall_friction
-from ..pipeline import Stage, StepContext
+from ..step import Stage, StepContext
 
 
 def reflect_on_plane(q1: np.ndarray, u1: np.ndarray, g_n: float, dt: float,

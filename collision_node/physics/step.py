@@ -1,0 +1,130 @@
+"""The step's framework: the stage base class, the step context and the pipeline.
+
+Stages (one module each under ``physics/stages``) import this module;
+``physics/plan.py`` chooses the stages for a scene and imports them, so
+the framework, the stages and the plan form no import circle.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, replace
+from typing import Optional
+
+import numpy as np
+
+from .accuracy import AccuracySettings
+from .effects import Effects
+from .state import ParticleState
+
+
+@dataclass
+class StepStats:
+    """Counters a world accumulates over its steps."""
+
+    collisions: int = 0
+    wall_collisions: int = 0
+    max_penetration: float = 0.0
+    dissipated: dict = field(default_factory=dict)
+    # Steps the event-driven mode handed to its step-solver fallback.
+    fallback_steps: int = 0
+
+    def copy(self) -> 'StepStats':
+        """Return an independent duplicate of the counters (to roll a step back)."""
+        return replace(self, dissipated=dict(self.dissipated))
+
+    def restore(self, saved: 'StepStats') -> None:
+        """Take every counter back to ``saved`` in place."""
+        for item in fields(self):
+            value = getattr(saved, item.name)
+            setattr(self, item.name, dict(value) if isinstance(value, dict) else value)
+
+    def add_dissipated(self, effect: str, energy: float) -> None:
+        """Book ``energy`` joules as removed by ``effect``."""
+        self.dissipated[effect] = self.dissipated.get(effect, 0.0) + energy
+
+
+@dataclass
+class Contacts:
+    """Overlapping particle pairs found by the narrowphase of one step."""
+
+    i: np.ndarray
+    j: np.ndarray
+    normal: np.ndarray
+    penetration: np.ndarray
+
+    @classmethod
+    def empty(cls) -> 'Contacts':
+        """Return a set of no contacts."""
+        none = np.zeros(0, dtype=np.int64)
+        return cls(none, none, np.zeros((0, 3)), np.zeros(0))
+
+    def __len__(self) -> int:
+        """Return the number of contacts."""
+        return int(self.i.shape[0])
+
+
+@dataclass
+class StepContext:
+    """What the stages of one step share: the state, settings and results."""
+
+    state: ParticleState
+    dt: float
+    dimensions: int
+    effects: Effects
+    accuracy: AccuracySettings
+    stats: StepStats
+    pair_i: Optional[np.ndarray] = None
+    pair_j: Optional[np.ndarray] = None
+    contacts: Optional[Contacts] = None
+    # Energy the effects had removed before this (sub)step, J: a stage can tell
+    # what this step has dissipated so far (separation uses it).
+    dissipated_before: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        """Note the dissipation booked so far."""
+        self.dissipated_before = sum(self.stats.dissipated.values())
+
+    def dissipated_now(self) -> float:
+        """Return the energy the effects removed so far in this (sub)step, J."""
+        return sum(self.stats.dissipated.values()) - self.dissipated_before
+
+
+class Stage:
+    """One part of a step; subclasses live one per module in ``stages/``."""
+
+    name = 'stage'
+
+    def run(self, ctx: StepContext) -> None:
+        """Advance or correct ``ctx.state`` in place."""
+        raise NotImplementedError
+
+    def describe(self) -> str:
+        """Return one line that says what the stage does."""
+        return self.name
+
+
+class Pipeline:
+    """An ordered list of stages run once per (sub)step."""
+
+    def __init__(self, stages: list[Stage], note: str = '') -> None:
+        """Keep the stages in the order they will run, and why they were chosen."""
+        self.stages = stages
+        self.note = note
+
+    @property
+    def names(self) -> list[str]:
+        """Stage names in run order."""
+        return [stage.name for stage in self.stages]
+
+    def run(self, ctx: StepContext) -> None:
+        """Run every stage in order on one step context."""
+        for stage in self.stages:
+            stage.run(ctx)
+
+    def explain(self) -> str:
+        """Return the pipeline as numbered lines, one per stage."""
+        lines = [f'{k + 1}. {stage.name}: {stage.describe()}'
+                 for k, stage in enumerate(self.stages)]
+        if self.note:
+            lines.append(f'note: {self.note}')
+        return '\n'.join(lines)

@@ -1,0 +1,22 @@
+"""The QoS profiles of the node's topics, in one place for the node and the viewer."""
+
+from __future__ import annotations
+
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+
+def reliable_qos(depth: int, durability: DurabilityPolicy = DurabilityPolicy.VOLATILE
+                 ) -> QoSProfile:
+    """Return a reliable keep-last profile (a best-effort publisher reaches no default sub)."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=ReliabilityPolicy.RELIABLE, durability=durability)
+
+
+# State streams: keep only the newest tick; a late tick is worth less than the next one.
+STATE_QOS = reliable_qos(1)
+# Velocities: one message per particle per tick, so the queue holds a tick's burst.
+VELOCITY_QOS = reliable_qos(1000)
+# Commands and their answers: a deeper queue, none may be lost.
+COMMAND_QOS = reliable_qos(50)
+# Status: the newest one, kept for late joiners (a viewer started later).
+STATUS_QOS = reliable_qos(1, DurabilityPolicy.TRANSIENT_LOCAL)

@@ -1,1 +1,0 @@
-"""Stages of a step, one per module; ``pipeline.build_pipeline`` assembles them."""
