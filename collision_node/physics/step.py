@@ -14,6 +14,7 @@ import numpy as np
 
 from .accuracy import AccuracySettings
 from .effects import Effects
+from .impacts import ImpactLog
 from .state import ParticleState
 
 
@@ -76,6 +77,11 @@ class StepContext:
     pair_i: Optional[np.ndarray] = None
     pair_j: Optional[np.ndarray] = None
     contacts: Optional[Contacts] = None
+    # Simulated time at the start of this (sub)step, s.
+    time: float = 0.0
+    # Where the contact law records the impacts it resolves; None while
+    # nobody reads them (recording then costs nothing).
+    impacts: Optional[ImpactLog] = None
     # Energy the effects had removed before this (sub)step, J: a stage can tell
     # what this step has dissipated so far (separation uses it).
     dissipated_before: float = field(init=False)

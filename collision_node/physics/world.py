@@ -14,6 +14,7 @@ import numpy as np
 from . import energy
 from .accuracy import check_event_particles
 from .effects import check_particles_for_effects
+from .impacts import ImpactLog
 from .plan import build_pipeline
 from .step import StepContext, StepStats
 from .scene import Scene, parse_spawn
@@ -32,6 +33,8 @@ class World:
         """Build the pipeline and load the scene's initial state."""
         self.scene = scene
         self.max_particles = max_particles
+        # Impacts are recorded only while asked for (record_impacts).
+        self.impact_log: Optional[ImpactLog] = None
         if max_particles is not None and len(scene.initial) > max_particles:
             raise SceneError(f'{scene.source}: {len(scene.initial)} particles exceed '
                              f'max_particles = {max_particles}')
@@ -73,14 +76,25 @@ class World:
         substeps = self.scene.accuracy.substeps
         sub_dt = self.scene.dt / substeps
         for _ in range(count):
-            for _ in range(substeps):
+            for k in range(substeps):
                 ctx = StepContext(state=self.state, dt=sub_dt,
                                   dimensions=self.scene.dimensions,
                                   effects=self.scene.effects, accuracy=self.scene.accuracy,
-                                  stats=self.stats)
+                                  stats=self.stats, time=self.time + k * sub_dt,
+                                  impacts=self.impact_log)
                 self.pipeline.run(ctx)
             self.steps += 1
             self._check_finite()
+
+    def record_impacts(self, enabled: bool) -> None:
+        """Start (keeping nothing from before) or stop recording the impacts resolved."""
+        self.impact_log = ImpactLog() if enabled else None
+
+    def take_impacts(self) -> np.ndarray:
+        """Return the impacts resolved since the last take (``impacts.IMPACT_DTYPE``)."""
+        if self.impact_log is None:
+            raise RuntimeError('impacts are not being recorded: call record_impacts(True)')
+        return self.impact_log.take()
 
     def _check_finite(self) -> None:
         """Raise instead of letting NaN or inf spread through the state."""

@@ -392,10 +392,11 @@ class EventDrivenStage(Stage):
         if self._fallback is None:
             self._fallback = self._build_fallback()
         sub_dt = ctx.dt / settings.substeps
-        for _ in range(settings.substeps):
+        for k in range(settings.substeps):
             self._fallback.run(StepContext(state=ctx.state, dt=sub_dt,
                                            dimensions=ctx.dimensions, effects=ctx.effects,
-                                           accuracy=settings, stats=ctx.stats))
+                                           accuracy=settings, stats=ctx.stats,
+                                           time=ctx.time + k * sub_dt, impacts=ctx.impacts))
         ctx.stats.fallback_steps += 1
         self.time += ctx.dt
         self._state = None      # event mode starts afresh from the new state
