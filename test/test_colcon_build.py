@@ -50,7 +50,7 @@ def readme_recipe() -> str:
 
 def run_recipe(home: Path) -> dict:
     """Run the recipe from the checkout with HOME = ``home``; return the environment it leaves."""
-    script = 'set -euo pipefail\n' + readme_recipe() + f"printf '\\n{ENV_MARK}'; env -0\n"
+    script = 'set -eo pipefail\n' + readme_recipe() + f"printf '\\n{ENV_MARK}'; env -0\n"
     env = {**os.environ, 'HOME': str(home)}
     done = subprocess.run(['bash', '-c', script], cwd=ROOT, env=env, capture_output=True,
                           timeout=300)
