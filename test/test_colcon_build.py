@@ -1,12 +1,14 @@
-"""colcon builds the package; every executable resolves as ``ros2 run`` resolves it.
+"""The README's colcon recipe builds the package; every executable resolves as ``ros2 run`` does.
 
 ``ros2 run PKG EXE`` looks up the package prefix in the ament index
 (``ament_index_python.get_package_prefix``, searching AMENT_PREFIX_PATH)
-and runs the executable file ``<prefix>/lib/PKG/EXE``. This test builds a
-copy of the package in a temporary workspace with colcon, puts the install
-prefix on AMENT_PREFIX_PATH as ``source install/setup.bash`` would, resolves
-every console script declared in setup.py that way, and runs ``simulate``
-on a shipped scene from the installed share/ directory.
+and runs the executable file ``<prefix>/lib/PKG/EXE``. This test runs the
+README's recipe for the venv's colcon exactly as written (the repository
+cloned into ``~/ws/src/``, ``colcon build``, ``. install/setup.sh``) with
+HOME in a temporary directory, takes the environment the setup script
+leaves, resolves every console script declared in setup.py that way and
+runs ``simulate`` on a shipped scene from the installed share/ directory.
+The clone holds the committed tree (CI runs in a fresh clone).
 """
 
 from __future__ import annotations
@@ -14,18 +16,18 @@ from __future__ import annotations
 import ast
 import json
 import os
-import shutil
+import re
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
-from ament_index_python.packages import get_package_prefix
+from ament_index_python.packages import get_package_prefix, get_package_share_directory
 
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGE = 'collision_node'
-NOT_SOURCES = ('.git', '.venv', 'build', 'install', 'log', '__pycache__', '.hypothesis',
-               '.pytest_cache', '*.egg-info', 'bench_out')
+RECIPE_LEAD = 'runs exactly this block'
+ENV_MARK = '--- environment after the recipe ---\n'
 
 
 def declared_console_scripts() -> list[str]:
@@ -38,46 +40,55 @@ def declared_console_scripts() -> list[str]:
     raise AssertionError('setup.py declares no entry_points')
 
 
-def colcon_build(workspace: Path) -> Path:
-    """Build a copy of the package in ``workspace``; return the package's install prefix."""
-    shutil.copytree(ROOT, workspace / 'src' / PACKAGE,
-                    ignore=shutil.ignore_patterns(*NOT_SOURCES))
-    colcon = shutil.which('colcon') or str(Path(sys.executable).with_name('colcon'))
-    done = subprocess.run(
-        [colcon, '--log-base', str(workspace / 'log'), 'build',
-         '--base-paths', str(workspace / 'src'),
-         '--build-base', str(workspace / 'build'),
-         '--install-base', str(workspace / 'install'),
-         '--event-handlers', 'console_direct-', 'console_start_end-'],
-        cwd=workspace, capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stdout + done.stderr
-    return workspace / 'install' / PACKAGE
+def readme_recipe() -> str:
+    """Return the README's colcon recipe for the venv (the bash block after RECIPE_LEAD)."""
+    readme = (ROOT / 'README.md').read_text()
+    found = re.search(re.escape(RECIPE_LEAD) + r'.*?```bash\n(.*?)```', readme, re.DOTALL)
+    assert found, f'README.md: no bash block after "{RECIPE_LEAD}"'
+    return found.group(1)
 
 
-def installed_environment(prefix: Path) -> dict:
-    """Return the environment ``source install/setup.bash`` gives, sources out of reach."""
-    site = prefix / 'lib' / f'python{sys.version_info[0]}.{sys.version_info[1]}' / 'site-packages'
-    env = dict(os.environ)
-    env['AMENT_PREFIX_PATH'] = os.pathsep.join(
-        [str(prefix)] + [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep)
-                         if p])
-    env['PYTHONPATH'] = str(site)   # the installed package, not the source tree
-    return env
+def run_recipe(home: Path) -> dict:
+    """Run the recipe from the checkout with HOME = ``home``; return the environment it leaves."""
+    script = 'set -eo pipefail\n' + readme_recipe() + f"printf '\\n{ENV_MARK}'; env -0\n"
+    env = {**os.environ, 'HOME': str(home)}
+    done = subprocess.run(['bash', '-c', script], cwd=ROOT, env=env, capture_output=True,
+                          timeout=300)
+    assert done.returncode == 0, (done.stdout + done.stderr).decode(errors='replace')[-4000:]
+    listing = done.stdout.decode().rsplit(ENV_MARK, 1)[1]
+    return dict(item.split('=', 1) for item in listing.split('\0') if '=' in item)
+
+
+def test_recipe_is_the_repository_in_src_and_builds_without_selection_or_bash():
+    recipe = readme_recipe()
+    assert 'git clone "$PWD" ~/ws/src/collision_node' in recipe
+    assert 'colcon build\n' in recipe and '. install/setup.sh' in recipe
 
 
 def test_colcon_build_then_ros2_run_resolution(tmp_path, monkeypatch):
-    prefix = colcon_build(tmp_path / 'ws')
-    env = installed_environment(prefix)
+    env = run_recipe(tmp_path)
+    prefix = tmp_path / 'ws' / 'install' / PACKAGE
+    # install/setup.sh put the built prefix first on the ament path and its site-packages
+    # on PYTHONPATH, ahead of the checkout.
+    assert env['AMENT_PREFIX_PATH'].split(os.pathsep)[0] == str(prefix)
+    site = prefix / 'lib' / f'python{sys.version_info[0]}.{sys.version_info[1]}' / 'site-packages'
+    assert env['PYTHONPATH'].split(os.pathsep)[0] == str(site)
     monkeypatch.setenv('AMENT_PREFIX_PATH', env['AMENT_PREFIX_PATH'])
     # ros2 run's lookup: package prefix from the ament index, then lib/<package>/<exe>.
     assert Path(get_package_prefix(PACKAGE)).resolve() == prefix.resolve()
+    share = Path(get_package_share_directory(PACKAGE))
+    assert '<name>collision_node</name>' in (share / 'package.xml').read_text()
     executables = declared_console_scripts()
-    assert 'simulate' in executables
+    assert sorted(executables) == ['collision_node', 'simulate', 'viewer']
     for name in executables:
         path = Path(get_package_prefix(PACKAGE)) / 'lib' / PACKAGE / name
         assert path.is_file(), f'{name}: not installed at {path}'
         assert os.access(path, os.X_OK), f'{name}: {path} is not executable'
         assert path.read_text().startswith('#!'), f'{name}: no interpreter line'
+    viewer = Path(get_package_prefix(PACKAGE)) / 'lib' / PACKAGE / 'viewer'
+    done = subprocess.run([str(viewer), '--help'], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=60)
+    assert done.returncode == 0 and done.stdout.startswith('usage: viewer'), done.stderr
 
     # The installed package is what runs, and shipped scenes come from share/.
     run_dir = tmp_path / 'elsewhere'

@@ -36,6 +36,7 @@ from ..physics.world import NonFiniteStateError, World
 from .pacing import BACKLOG_KEPT, Pacer, RateMeter, STEP_BUDGET
 from .parameters import DEFAULT_SCENE, invalid_parameter, PARAMETERS
 from .qos import COMMAND_QOS, STATE_QOS, STATUS_QOS, VELOCITY_QOS
+from .reports import Reports
 from .status import status_report
 
 NODE_NAME = 'collision_node'
@@ -92,6 +93,7 @@ class CollisionNode(Node):
                                             clock=self.steady)
         self.status_timer = self.create_timer(STATUS_PERIOD, self._publish_status,
                                               clock=self.steady)
+        self.reports = Reports(self, self.status, self.steady)   # /diagnostics, collisions
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
@@ -201,6 +203,7 @@ class CollisionNode(Node):
             publish = self.pub_velocities.publish
             for message in velocities_bytes(s.ids, s.velocity, s.angular_velocity, t, frame):
                 publish(message)
+        self.reports.publish_collisions(self.world, t, frame)
 
     def status(self) -> dict[str, Any]:
         """Return the node's status as a JSON-ready mapping."""

@@ -20,3 +20,7 @@ VELOCITY_QOS = reliable_qos(1000)
 COMMAND_QOS = reliable_qos(50)
 # Status: the newest one, kept for late joiners (a viewer started later).
 STATUS_QOS = reliable_qos(1, DurabilityPolicy.TRANSIENT_LOCAL)
+# Impacts: every tick's batch counts (a listener prints each impact), so a few seconds' worth.
+COLLISIONS_QOS = reliable_qos(100)
+# /diagnostics: reliable keep last 10, as monitoring tools subscribe.
+DIAGNOSTICS_QOS = reliable_qos(10)

@@ -3,9 +3,11 @@
     viewer                         # one live line: particles, time, RTF, collisions/s, energy
     viewer --once                  # print one summary and exit
     viewer --snapshot world.png    # draw the particles into a PNG and exit
+    viewer --collisions            # one line per impact the node resolves (--once: one batch)
 
-It subscribes to the node's ``status`` (JSON) and, for a snapshot, to
-``particles/state`` (PointCloud2, decoded by :mod:`msg_adapters`). Topic
+It subscribes to the node's ``status`` (JSON), for a snapshot to
+``particles/state`` and for ``--collisions`` to ``particles/collisions``
+(PointClouds, decoded by :mod:`msg_adapters`). Topic
 names are relative: ``--ros-args -r __ns:=/ns`` follows a namespaced node.
 Exit codes: 0 done or Ctrl-C, 1 nothing heard before ``--timeout``,
 2 bad arguments or an unwritable snapshot path.
@@ -28,9 +30,9 @@ from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 
-from msg_adapters import seconds_from_stamp, state_from_point_cloud
+from msg_adapters import impacts_from_point_cloud, seconds_from_stamp, state_from_point_cloud
 
-from .qos import STATE_QOS, STATUS_QOS
+from .qos import COLLISIONS_QOS, STATE_QOS, STATUS_QOS
 
 DEFAULT_ONE_SHOT_TIMEOUT = 10.0
 
@@ -51,6 +53,22 @@ def summary_line(status: Mapping[str, Any]) -> str:
             f'{status["collisions_per_second"]:.1f} collisions/s  '
             f'KE {status["kinetic_energy"]:.6g} J'
             + (f'  [{", ".join(flags)}]' if flags else ''))
+
+
+def collision_lines(impacts: Mapping[str, np.ndarray]) -> list[str]:
+    """Return one line per impact of a decoded ``particles/collisions`` message."""
+    lines = []
+    for k in range(len(impacts['time'])):
+        j = int(impacts['j'][k])
+        other = 'wall' if j < 0 else str(j)
+        point = ' '.join(f'{v:.6g}' for v in impacts['point'][k])
+        normal = ' '.join(f'{v:.6g}' for v in impacts['normal'][k])
+        lines.append(f't = {impacts["time"][k]:.6f} s  {int(impacts["i"][k])} - {other}  '
+                     f'at ({point})  normal ({normal})  '
+                     f'J = {impacts["normal_impulse"][k]:.6g} N s  '
+                     f'Jt = {impacts["tangential_impulse"][k]:.6g} N s  '
+                     f'closing {impacts["closing_speed"][k]:.6g} m/s')
+    return lines
 
 
 def draw_snapshot(state: Mapping[str, np.ndarray], title: str, path: Path) -> None:
@@ -96,15 +114,19 @@ def draw_snapshot(state: Mapping[str, np.ndarray], title: str, path: Path) -> No
 class Viewer(Node):
     """Collects the newest status and (for a snapshot) the newest state."""
 
-    def __init__(self, want_state: bool) -> None:
-        """Subscribe to ``status`` and, if asked, ``particles/state``."""
+    def __init__(self, want_state: bool, want_collisions: bool = False) -> None:
+        """Subscribe to ``status`` and, if asked, ``particles/state`` and the collisions."""
         super().__init__('collision_viewer')
         self.status: Optional[dict] = None
         self.status_count = 0
         self.state: Optional[PointCloud2] = None
+        self.collisions: list[str] = []     # lines not printed yet
         self.create_subscription(String, 'status', self._on_status, STATUS_QOS)
         if want_state:
             self.create_subscription(PointCloud2, 'particles/state', self._on_state, STATE_QOS)
+        if want_collisions:
+            self.create_subscription(PointCloud2, 'particles/collisions', self._on_collisions,
+                                     COLLISIONS_QOS)
 
     def _on_status(self, msg: String) -> None:
         self.status = json.loads(msg.data)
@@ -112,6 +134,9 @@ class Viewer(Node):
 
     def _on_state(self, msg: PointCloud2) -> None:
         self.state = msg
+
+    def _on_collisions(self, msg: PointCloud2) -> None:
+        self.collisions.extend(collision_lines(impacts_from_point_cloud(msg)))
 
 
 def parse_arguments(argv: list[str]) -> argparse.Namespace:
@@ -122,6 +147,10 @@ def parse_arguments(argv: list[str]) -> argparse.Namespace:
                         help='print one summary line and exit')
     parser.add_argument('--snapshot', type=Path, metavar='FILE.png',
                         help='write a picture of the particles to FILE.png and exit')
+    parser.add_argument('--collisions', action='store_true',
+                        help='print one line per impact (time, ids, point, normal, impulses, '
+                             'closing speed) instead of the summary; with --once, stop after '
+                             'the first batch of impacts')
     parser.add_argument('--timeout', type=float, metavar='S',
                         help=f'give up after S seconds without the node (default '
                              f'{DEFAULT_ONE_SHOT_TIMEOUT:g} with --once/--snapshot, '
@@ -129,6 +158,8 @@ def parse_arguments(argv: list[str]) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if args.timeout is not None and not args.timeout > 0:
         parser.error(f'--timeout must be > 0, got {args.timeout}')
+    if args.collisions and args.snapshot is not None:
+        parser.error('--collisions and --snapshot do not go together')
     if args.snapshot is not None and args.snapshot.suffix.lower() != '.png':
         parser.error(f'--snapshot must name a .png file, got {args.snapshot}')
     if args.snapshot is not None and not args.snapshot.resolve().parent.is_dir():
@@ -136,8 +167,36 @@ def parse_arguments(argv: list[str]) -> argparse.Namespace:
     return args
 
 
+def run_collisions(viewer: Viewer, args: argparse.Namespace, out: TextIO) -> int:
+    """Print impact lines as they come; with --once stop after the first batch.
+
+    Live, ``--timeout`` ends the listening (exit 0); with ``--once`` it is an
+    error (exit 1) when no impact came.
+    """
+    timeout = args.timeout if args.timeout is not None else (
+        DEFAULT_ONE_SHOT_TIMEOUT if args.once else None)
+    deadline = None if timeout is None else time.monotonic() + timeout
+    while True:
+        rclpy.spin_once(viewer, timeout_sec=0.1)
+        if viewer.collisions:
+            out.write(''.join(line + '\n' for line in viewer.collisions))
+            out.flush()
+            viewer.collisions.clear()
+            if args.once:
+                return 0
+        if deadline is not None and time.monotonic() > deadline:
+            if args.once:
+                print(f'viewer: no impact from collision_node within {timeout:g} s '
+                      '(is it running, on the same ROS_DOMAIN_ID and namespace?)',
+                      file=sys.stderr)
+                return 1
+            return 0
+
+
 def run(viewer: Viewer, args: argparse.Namespace, out: TextIO) -> int:
     """Spin until the request is served; return the exit code."""
+    if getattr(args, 'collisions', False):
+        return run_collisions(viewer, args, out)
     one_shot = args.once or args.snapshot is not None
     timeout = args.timeout if args.timeout is not None else (
         DEFAULT_ONE_SHOT_TIMEOUT if one_shot else None)
@@ -181,7 +240,8 @@ def main(args: Optional[list[str]] = None) -> int:
     rclpy.init(args=argv)
     viewer = None
     try:
-        viewer = Viewer(want_state=options.snapshot is not None)
+        viewer = Viewer(want_state=options.snapshot is not None,
+                        want_collisions=options.collisions)
         return run(viewer, options, sys.stdout)
     except (KeyboardInterrupt, ExternalShutdownException):
         if sys.stdout.isatty():

@@ -1,0 +1,646 @@
+"""Load benchmark of the node: spawn floods, garbage input, real-time factor, latency.
+
+    python -m collision_node.bench node-load [--spawns 10000] [--garbage 10000]
+        [--particles 10000] [--latency-samples 50] [--rtf-particles 1000]
+        [--rtf-seconds 5] [--stall-particles 20000] [--timeout 60]
+
+The node runs as its own process (``python -m collision_node.ros.node``, so
+this checkout's code) on a ROS domain of its own; this process is one
+client. Four parts, printed as one Markdown table:
+
+(a) ``--spawns`` valid single-particle spawns (non-overlapping, on a lattice
+    in a walled box), published back to back by one publisher with the
+    node's command QoS: how many are accepted, rejected or never answered
+    (answers matched by ``request_id`` when the node echoes it), and the
+    rate of ``particles/poses`` meanwhile against ``publish_rate``.
+(b) ``--garbage`` malformed requests cycling through every kind below
+    (YAML alias bombs, nesting 5000 deep, 1 MiB strings, random text,
+    invalid UTF-8 sent as raw CDR, absurd numbers, wrong types): answers,
+    rejections per second, the node's resident memory (VmRSS before and
+    after, VmHWM peak) and whether it survived.
+(c) real-time factor measured from ``/clock`` against wall time at
+    ``publish_rate`` 30 and 1000 on a gas of ``--rtf-particles``, before and
+    after a stall (a spawn of ``--stall-particles`` that is rejected at its
+    last entry, so the node parses and validates it all and the world stays
+    the same); "first 1 s after" shows a catch-up burst if the node chases
+    the time the stall cost.
+(d) spawn-to-answer latency (one request at a time) with a running world
+    of ``--particles`` gas particles: median, 90th percentile, maximum.
+
+Every number is what was measured; a node that dies, hangs or drops
+answers is reported as such, never retried into a good figure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+import numpy as np
+import rclpy
+from geometry_msgs.msg import PoseArray
+from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+from std_msgs.msg import Empty, String
+
+from msg_adapters import seconds_from_stamp
+from msg_adapters.cdr import CdrWriter
+
+from ..ros.qos import COMMAND_QOS, STATE_QOS, STATUS_QOS
+
+NODE_NAME = 'collision_node'
+SPAWN_RADIUS = 0.005          # m, the flood's and the latency probes' particles
+LATTICE = 0.02                # m between flood spawns (4 radii: none overlap)
+GAS_RADIUS = 0.01             # m
+GAS_FRACTION = 0.05           # volume fraction of the latency world's gas
+GAS_SPEED = 0.1               # m/s
+DT = 1.0 / 60.0               # s, every bench scene
+# Answers are taken with KEEP_ALL: the bench must not lose what the node sent.
+ANSWER_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
+
+
+# -- scenes -----------------------------------------------------------------
+
+def lattice_positions(count: int) -> np.ndarray:
+    """Return ``count`` lattice points LATTICE apart, starting one LATTICE from the origin."""
+    side = int(np.ceil(count ** (1.0 / 3.0)))
+    k = np.arange(count)
+    return LATTICE * (1 + np.stack([k % side, (k // side) % side, k // side ** 2], axis=1))
+
+
+def box_scene_text(count: int) -> str:
+    """Return an empty walled box that holds ``count`` lattice spawns (and a gas later)."""
+    side = LATTICE * (int(np.ceil(count ** (1.0 / 3.0))) + 1)
+    side = max(side, 0.5)
+    return (f'name: load_box\ndimensions: 3\ndt: {DT!r}\n'
+            f'effects:\n  walls: {{min: [0, 0, 0], max: [{side!r}, {side!r}, {side!r}]}}\n')
+
+
+def box_side(text: str) -> float:
+    """Return the side of a box written by ``box_scene_text`` or ``gas_scene_text``."""
+    return float(text.split('max: [')[1].split(',')[0])
+
+
+def gas_scene_text(count: int) -> str:
+    """Return a 3-D gas of ``count`` particles in the lower 80 % of a walled cube."""
+    volume = count * (4.0 / 3.0) * np.pi * GAS_RADIUS ** 3 / GAS_FRACTION
+    side = round(max(0.5, (volume / 0.8) ** (1.0 / 3.0)), 3)
+    return (f'name: load_gas_{count}\ndimensions: 3\ndt: {DT!r}\n'
+            f'effects:\n  walls: {{min: [0, 0, 0], max: [{side!r}, {side!r}, {side!r}]}}\n'
+            f'generate:\n  - {{kind: gas, count: {count}, radius: {GAS_RADIUS}, mass: 1.0, '
+            f'speed: {GAS_SPEED}, seed: 3, region: {{min: [0, 0, 0], '
+            f'max: [{side!r}, {side!r}, {0.8 * side!r}]}}}}\n')
+
+
+def spawn_text(position: np.ndarray, request_id: Optional[str]) -> str:
+    """Return one single-particle spawn request (JSON), with ``request_id`` if given."""
+    request: dict[str, Any] = {} if request_id is None else {'request_id': request_id}
+    request.update(position=[round(float(c), 9) for c in position], radius=SPAWN_RADIUS,
+                   mass=0.001)
+    return json.dumps(request)
+
+
+# -- garbage ----------------------------------------------------------------
+
+def alias_bomb(field: str) -> str:
+    """Return a 'billion laughs' YAML whose ``field`` expands to 9**9 strings."""
+    lines = ['l0: &l0 [lol, lol, lol, lol, lol, lol, lol, lol, lol]']
+    for level in range(1, 9):
+        refs = ', '.join([f'*l{level - 1}'] * 9)
+        lines.append(f'l{level}: &l{level} [{refs}]')
+    # The anchors must be defined before use, so they sit under a key the
+    # request does not know; the bomb is then referenced where a value goes.
+    return '{' + ', '.join(lines) + f', {field}: *l8, radius: 0.01, mass: 1}}'
+
+
+def invalid_utf8_cdr(rng: random.Random) -> bytes:
+    """Return a serialised std_msgs/String whose data is not valid UTF-8."""
+    payload = bytes([0xff, 0xfe, 0xc0, 0x80]) + bytes(rng.randrange(256) for _ in range(60))
+    writer = CdrWriter()
+    writer.uint32(len(payload) + 1)
+    writer.raw(payload + b'\x00')
+    return writer.bytes()
+
+
+ABSURD = [
+    '{position: [0, 0, 0], radius: 1e308, mass: 1}',
+    '{position: [1e999, 0, 0], radius: 0.01, mass: 1}',
+    '{position: [0, 0, 0], radius: 0.01, mass: 1e-400}',
+    '{position: [0, 0, 0], radius: ' + '9' * 5000 + ', mass: 1}',
+    '{position: [0, 0, 0], radius: -0.0, mass: .nan}',
+    '{kind: gas, count: 1000000000000, radius: 0.01, mass: 1, '
+    'region: {min: [0, 0, 0], max: [1, 1, 1]}}',
+    '{kind: gas, count: 100000000, radius: 1e-9, mass: 1, '
+    'region: {min: [0, 0, 0], max: [1, 1, 1]}}',
+    '{position: [0, 0, 0], velocity: [1e300, 1e300, 1e300], radius: 0.01, mass: 1}',
+]
+WRONG_TYPES = ['[' + ', '.join(['null'] * 1000) + ']', 'true', '', '{}', '- - -',
+               '{position: yes, radius: [], mass: {}}', '"\\ud800"', '!!python/object:os.system',
+               '{particles: 5, generate: "x"}', '%YAML 9.9\n---\n1']
+
+
+def garbage_kinds() -> list[tuple[str, Callable[[int, random.Random], Any]]]:
+    """Return (kind, maker) pairs; a maker returns a str (a String's data) or raw CDR bytes."""
+    mib = 1 << 20
+    return [
+        ('YAML alias bomb (position)', lambda k, rng: alias_bomb('position')),
+        ('YAML alias bomb (request_id)', lambda k, rng: alias_bomb('request_id')),
+        ('nesting 5000 deep, list', lambda k, rng: '[' * 5000),
+        ('nesting 5000 deep, mapping', lambda k, rng: '{"a": ' * 5000 + '1' + '}' * 5000),
+        ('1 MiB string', lambda k, rng: '"' + 'x' * mib + '"'),
+        ('1 MiB field in a particle', lambda k, rng: '{position: [0, 0, 0], radius: 0.01, '
+                                                     'mass: 1, colour: ' + 'y' * mib + '}'),
+        ('random text (1 KiB)',
+         lambda k, rng: bytes(rng.randrange(1, 256) for _ in range(1024)).decode('latin-1')),
+        ('invalid UTF-8 (raw CDR)', lambda k, rng: invalid_utf8_cdr(rng)),
+        ('absurd numbers', lambda k, rng: ABSURD[k % len(ABSURD)]),
+        ('wrong types', lambda k, rng: WRONG_TYPES[k % len(WRONG_TYPES)]),
+    ]
+
+
+# -- the node process and the client ----------------------------------------
+
+class NodeProcess:
+    """The node in a process of its own on ``domain_id``."""
+
+    def __init__(self, scene: Path, domain_id: int, parameters: dict[str, str]) -> None:
+        """Start ``python -m collision_node.ros.node`` on the scene with the parameters."""
+        self.log = tempfile.TemporaryFile('w+')
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id),
+                   ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
+        args = ['--ros-args', '-p', f'scene:={scene}']
+        for name, value in parameters.items():
+            args += ['-p', f'{name}:={value}']
+        self.process = subprocess.Popen([sys.executable, '-m', 'collision_node.ros.node', *args],
+                                        env=env, stdout=self.log, stderr=subprocess.STDOUT)
+
+    def alive(self) -> bool:
+        """Tell whether the process still runs."""
+        return self.process.poll() is None
+
+    def memory_kib(self, field: str = 'VmRSS') -> Optional[int]:
+        """Return a /proc/PID/status memory field in KiB (None once the process is gone)."""
+        try:
+            with open(f'/proc/{self.process.pid}/status', encoding='ascii') as status:
+                for line in status:
+                    if line.startswith(field + ':'):
+                        return int(line.split()[1])
+        except OSError:
+            return None
+        return None
+
+    def tail(self, lines: int = 3) -> str:
+        """Return the last lines the node wrote."""
+        self.log.seek(0)
+        return ' | '.join(self.log.read().strip().splitlines()[-lines:])
+
+    def stop(self) -> Optional[int]:
+        """Stop the node with SIGINT (then SIGKILL); return its exit code."""
+        if self.alive():
+            self.process.send_signal(signal.SIGINT)
+            try:
+                self.process.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        self.log.close()
+        return self.process.returncode
+
+
+class Client:
+    """One client node: publishes requests, collects answers, status, /clock and poses."""
+
+    def __init__(self, domain_id: int) -> None:
+        """Create the context, node, publishers and subscriptions."""
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.node = rclpy.create_node(f'load_bench_{os.getpid()}', context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.events: list[tuple[float, dict]] = []
+        self.statuses: list[dict] = []
+        self.clock: list[tuple[float, float]] = []
+        self.poses: list[float] = []
+        self.node.create_subscription(String, 'events', self._on_event, ANSWER_QOS)
+        self.node.create_subscription(String, 'status', self._on_status, STATUS_QOS)
+        self.node.create_subscription(Clock, '/clock', self._on_clock, STATE_QOS)
+        self.spawn = self.node.create_publisher(String, 'spawn', COMMAND_QOS)
+        self.reset = self.node.create_publisher(Empty, 'reset', COMMAND_QOS)
+        self.parameters = self.node.create_client(SetParameters,
+                                                  f'/{NODE_NAME}/set_parameters')
+        self._poses_subscription = None
+
+    def _on_event(self, msg: String) -> None:
+        try:
+            event = json.loads(msg.data)
+        except ValueError:
+            event = {'unparsed': msg.data[:80]}
+        self.events.append((time.monotonic(), event))
+
+    def _on_status(self, msg: String) -> None:
+        self.statuses.append(json.loads(msg.data))
+
+    def _on_clock(self, msg: Clock) -> None:
+        self.clock.append((time.monotonic(), seconds_from_stamp(msg.clock)))
+
+    def _on_poses(self, _: bytes) -> None:
+        self.poses.append(time.monotonic())
+
+    def count_poses(self, enabled: bool) -> None:
+        """Subscribe to particles/poses (raw, not decoded) or drop the subscription."""
+        if enabled and self._poses_subscription is None:
+            self._poses_subscription = self.node.create_subscription(
+                PoseArray, 'particles/poses', self._on_poses, STATE_QOS, raw=True)
+        elif not enabled and self._poses_subscription is not None:
+            self.node.destroy_subscription(self._poses_subscription)
+            self._poses_subscription = None
+
+    def spin(self, seconds: float) -> None:
+        """Take callbacks for ``seconds``."""
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=min(0.05, max(0.0, end - time.monotonic())))
+
+    def wait(self, condition: Callable[[], Any], timeout: float,
+             node: Optional[NodeProcess] = None) -> bool:
+        """Spin until ``condition()`` holds; False on timeout or when ``node`` died."""
+        end = time.monotonic() + timeout
+        while not condition():
+            if time.monotonic() > end or (node is not None and not node.alive()):
+                return bool(condition())
+            self.executor.spin_once(timeout_sec=0.02)
+        return True
+
+    def set_parameter(self, name: str, value: float, timeout: float) -> bool:
+        """Set a double parameter of the node; return whether it was accepted."""
+        if not self.parameters.wait_for_service(timeout_sec=timeout):
+            return False
+        request = SetParameters.Request(parameters=[Parameter(name=name, value=ParameterValue(
+            type=ParameterType.PARAMETER_DOUBLE, double_value=float(value)))])
+        future = self.parameters.call_async(request)
+        self.executor.spin_until_future_complete(future, timeout_sec=timeout)
+        return bool(future.done() and future.result().results[0].successful)
+
+    def close(self) -> None:
+        """Destroy the node and shut the context down."""
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.context)
+
+
+def start_node(scene_text: str, workdir: Path, name: str, domain_id: int,
+               timeout: float) -> tuple[NodeProcess, Client]:
+    """Write the scene, start the node and a client; wait for its status and subscriptions."""
+    path = workdir / f'{name}.yaml'
+    path.write_text(scene_text)
+    node = NodeProcess(path, domain_id, {})
+    client = Client(domain_id)
+    ready = client.wait(lambda: client.statuses and client.spawn.get_subscription_count() > 0
+                        and client.reset.get_subscription_count() > 0, timeout, node)
+    if not ready:
+        tail = node.tail()
+        client.close()
+        node.stop()
+        raise RuntimeError(f'node on {name} did not come up within {timeout:g} s: {tail}')
+    return node, client
+
+
+def answers_since(client: Client, start: int) -> list[tuple[float, dict]]:
+    """Return the answers received from index ``start`` on."""
+    return client.events[start:]
+
+
+def wait_answers(client: Client, node: NodeProcess, start: int, expected: int,
+                 quiet: float) -> None:
+    """Spin until ``expected`` answers came, the node died or none came for ``quiet`` s."""
+    while len(client.events) - start < expected and node.alive():
+        before = len(client.events)
+        client.wait(lambda: len(client.events) > before, quiet, node)
+        if len(client.events) == before:
+            return
+
+
+# -- the parts ----------------------------------------------------------------
+
+Row = tuple[str, str, str]
+
+
+def probe_request_id(client: Client, node: NodeProcess, position: np.ndarray,
+                     timeout: float) -> bool:
+    """Spawn one particle with a request_id; tell whether the node echoes it."""
+    start = len(client.events)
+    client.spawn.publish(String(data=spawn_text(position, 'probe')))
+    client.wait(lambda: len(client.events) > start, timeout, node)
+    answers = answers_since(client, start)
+    return bool(answers and answers[0][1].get('request_id') == 'probe'
+                and answers[0][1].get('accepted'))
+
+
+def spawn_flood(client: Client, node: NodeProcess, count: int, timeout: float) -> list[Row]:
+    """Part (a): ``count`` valid spawns back to back; answers and the poses rate meanwhile."""
+    positions = lattice_positions(count + 1)
+    with_ids = probe_request_id(client, node, positions[0], timeout)
+    publish_rate = client.statuses[-1].get('publish_rate', float('nan'))
+    client.count_poses(True)
+    client.wait(lambda: client.poses, timeout, node)
+    start, poses_start = len(client.events), len(client.poses)
+    texts = [spawn_text(p, f'f{k}' if with_ids else None)
+             for k, p in enumerate(positions[1:])]
+    t0 = time.monotonic()
+    for text in texts:
+        client.spawn.publish(String(data=text))
+    t_published = time.monotonic()
+    wait_answers(client, node, start, count, timeout)
+    t_end = time.monotonic()
+    window_poses = [t for t in client.poses[poses_start:] if t0 <= t <= t_end]
+    client.count_poses(False)
+    answers = [event for _, event in answers_since(client, start)
+               if event.get('request') == 'spawn']
+    if with_ids:
+        wanted = {f'f{k}' for k in range(count)}
+        answers = [a for a in answers if a.get('request_id') in wanted]
+    accepted = sum(1 for a in answers if a.get('accepted'))
+    reasons = sorted({a.get('reason', '')[:70] for a in answers if not a.get('accepted')})
+    rows = [
+        ('a', 'spawns published (one publisher, back to back)',
+         f'{count} in {t_published - t0:.2f} s'),
+        ('a', 'answers matched by', 'request_id' if with_ids else
+         'count (the node does not echo request_id)'),
+        ('a', 'accepted / rejected / unanswered',
+         f'{accepted} / {len(answers) - accepted} / {count - len(answers)}'),
+        ('a', 'time to the last answer', f'{(t_end - t0):.2f} s'),
+        ('a', 'particles/poses rate meanwhile vs publish_rate',
+         f'{len(window_poses) / max(t_end - t0, 1e-9):.1f} Hz vs {publish_rate:g} Hz'),
+    ]
+    if reasons:
+        rows.append(('a', 'rejection reasons (first 70 chars)', '; '.join(reasons[:3])))
+    if not node.alive():
+        rows.append(('a', 'node', f'DIED (exit {node.process.returncode}): {node.tail()}'))
+    return rows
+
+
+def garbage_flood(client: Client, node: NodeProcess, count: int, timeout: float,
+                  seed: int = 5) -> list[Row]:
+    """Part (b): ``count`` malformed requests of every kind; answers, rate and memory."""
+    rng = random.Random(seed)
+    kinds = garbage_kinds()
+    raw = client.node.create_publisher(String, 'spawn', COMMAND_QOS)
+    client.wait(lambda: raw.get_subscription_count() > 0, timeout, node)
+    rss_before = node.memory_kib()
+    start = len(client.events)
+    sent = {name: 0 for name, _ in kinds}
+    t0 = time.monotonic()
+    died_at = None
+    for k in range(count):
+        name, make = kinds[k % len(kinds)]
+        message = make(k // len(kinds), rng)
+        if isinstance(message, bytes):
+            raw.publish(message)
+        else:
+            client.spawn.publish(String(data=message))
+        sent[name] += 1
+        if k % 50 == 49:
+            # Take answers as they come so the client's own queue stays small.
+            client.executor.spin_once(timeout_sec=0)
+            if not node.alive():
+                died_at = name
+                break
+    t_published = time.monotonic()
+    total = sum(sent.values())
+    wait_answers(client, node, start, total, timeout)
+    answers = answers_since(client, start)
+    t_last = answers[-1][0] if answers else time.monotonic()
+    rejected = sum(1 for _, e in answers if not e.get('accepted', False))
+    rss_after, hwm = node.memory_kib(), node.memory_kib('VmHWM')
+    client.node.destroy_publisher(raw)
+
+    def mib(kib: Optional[int]) -> str:
+        return '-' if kib is None else f'{kib / 1024:.0f} MiB'
+    rows = [
+        ('b', 'garbage published', f'{total} ({len(kinds)} kinds, '
+                                   f'{total // len(kinds)}+ each) in {t_published - t0:.2f} s'),
+        ('b', 'answers (rejections) / published', f'{len(answers)} ({rejected}) / {total}'),
+        ('b', 'rejections per second', f'{rejected / max(t_last - t0, 1e-9):.0f}'),
+        ('b', 'node VmRSS before / after, VmHWM', f'{mib(rss_before)} / {mib(rss_after)}, '
+                                                  f'{mib(hwm)}'),
+        ('b', 'node', 'alive' if node.alive() else
+         f'DIED (exit {node.process.returncode}) during "{died_at or "the answers"}": '
+         f'{node.tail()}'),
+    ]
+    accepted = [e for _, e in answers if e.get('accepted')]
+    if accepted:
+        rows.append(('b', 'garbage ACCEPTED', f'{len(accepted)}: '
+                                              f'{json.dumps(accepted[0])[:80]}'))
+    return rows
+
+
+def measure_rtf(client: Client, seconds: float) -> tuple[float, float]:
+    """Return (real-time factor over ``seconds``, over its first second) from /clock."""
+    start = len(client.clock)
+    client.spin(seconds)
+    samples = client.clock[start:]
+    if len(samples) < 2:
+        return float('nan'), float('nan')
+    wall = np.array([w for w, _ in samples])
+    sim = np.array([s for _, s in samples])
+    whole = (sim[-1] - sim[0]) / (wall[-1] - wall[0])
+    first = wall <= wall[0] + 1.0
+    early = ((sim[first][-1] - sim[0]) / (wall[first][-1] - wall[0])
+             if first.sum() > 1 else float('nan'))
+    return float(whole), float(early)
+
+
+def stall_request(count: int) -> str:
+    """Return a spawn of ``count`` particles whose last one is invalid (rejected whole)."""
+    rows = [f'{{"position": [{0.01 * (k % 50) + 0.01}, {0.01 * (k // 50 % 50) + 0.01}, '
+            f'{0.01 * (k // 2500) + 0.01}], "radius": 0.001, "mass": 1}}' for k in range(count)]
+    rows[-1] = '{"position": [0, 0, 0], "radius": -1, "mass": 1}'
+    return '{"particles": [' + ', '.join(rows) + ']}'
+
+
+def rtf_around_stall(client: Client, node: NodeProcess, particles: int, seconds: float,
+                     stall_particles: int, side: float, timeout: float) -> list[Row]:
+    """Part (c): RTF at publish_rate 30 and 1000, before and after a stall."""
+    start = len(client.events)
+    client.reset.publish(Empty())
+    client.wait(lambda: len(client.events) > start, timeout, node)
+    start = len(client.events)
+    client.spawn.publish(String(data=json.dumps({
+        'kind': 'gas', 'count': particles, 'radius': SPAWN_RADIUS, 'mass': 0.001,
+        'speed': 0.2, 'seed': 1, 'region': {'min': [0, 0, 0], 'max': [side] * 3}})))
+    client.wait(lambda: len(client.events) > start, timeout, node)
+    gas = answers_since(client, start)
+    rows: list[Row] = [('c', 'world', f'{particles}-particle gas, dt = {DT:.4g} s, factor 1: '
+                        + ('spawned' if gas and gas[0][1].get('accepted') else
+                           f'spawn refused: {gas[0][1].get("reason", "")[:60]}' if gas
+                           else 'spawn unanswered'))]
+    stall = stall_request(stall_particles)
+    for rate in (30.0, 1000.0):
+        if not node.alive():
+            break
+        if not client.set_parameter('publish_rate', rate, timeout):
+            rows.append(('c', f'publish_rate {rate:g}', 'refused or unanswered'))
+            continue
+        client.spin(1.0)
+        before, _ = measure_rtf(client, seconds)
+        start = len(client.events)
+        t0 = time.monotonic()
+        client.spawn.publish(String(data=stall))
+        client.wait(lambda: len(client.events) > start, timeout, node)
+        stall_s = time.monotonic() - t0
+        after, first = measure_rtf(client, seconds)
+        rows.append(('c', f'RTF at publish_rate {rate:g}: before / after stall '
+                          f'(first 1 s after)', f'{before:.3f} / {after:.3f} ({first:.3f})'))
+        rows.append(('c', f'stall at publish_rate {rate:g} (spawn of {stall_particles}, '
+                          'rejected)', f'{stall_s:.2f} s to its answer'))
+    client.set_parameter('publish_rate', 30.0, timeout)
+    return rows
+
+
+def spawn_latency(client: Client, node: NodeProcess, samples: int, particles: int,
+                  side: float, timeout: float) -> list[Row]:
+    """Part (d): spawn-to-answer latency, one request at a time, in a running gas."""
+    rng = np.random.default_rng(11)
+    with_ids = probe_request_id(client, node, np.array([0.5, 0.5, 0.9]) * side, timeout)
+    rtf, _ = measure_rtf(client, 2.0)
+    latencies, accepted, lost = [], 0, 0
+    for k in range(samples):
+        position = np.array([rng.uniform(0.1, 0.9) * side, rng.uniform(0.1, 0.9) * side,
+                             rng.uniform(0.86, 0.97) * side])
+        request_id = f'l{k}' if with_ids else None
+        start = len(client.events)
+        t0 = time.monotonic()
+        client.spawn.publish(String(data=spawn_text(position, request_id)))
+
+        def answered() -> Optional[tuple[float, dict]]:
+            for t, event in client.events[start:]:
+                if event.get('request') == 'spawn' and (
+                        request_id is None or event.get('request_id') == request_id):
+                    return t, event
+            return None
+        if not client.wait(answered, timeout, node):
+            lost += 1
+            if not node.alive():
+                break
+            continue
+        t, event = answered()
+        latencies.append(t - t0)
+        accepted += bool(event.get('accepted'))
+    ms = 1e3 * np.array(latencies) if latencies else np.array([np.nan])
+    rows = [
+        ('d', 'world', f'{particles}-particle gas, dt = {DT:.4g} s, measured RTF {rtf:.3f}'),
+        ('d', 'spawn-to-answer latency median / p90 / max',
+         f'{np.median(ms):.1f} / {np.percentile(ms, 90):.1f} / {ms.max():.1f} ms'),
+        ('d', 'requests answered (accepted) / sent / unanswered',
+         f'{len(latencies)} ({accepted}) / {samples} / {lost}'),
+    ]
+    if not node.alive():
+        rows.append(('d', 'node', f'DIED (exit {node.process.returncode}): {node.tail()}'))
+    return rows
+
+
+# -- command ----------------------------------------------------------------
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the benchmark's options."""
+    parser.add_argument('--spawns', type=int, default=10_000, metavar='N',
+                        help='(a) valid single-particle spawns (default 10000)')
+    parser.add_argument('--garbage', type=int, default=10_000, metavar='N',
+                        help='(b) malformed requests (default 10000)')
+    parser.add_argument('--rtf-particles', type=int, default=1_000, metavar='N',
+                        help='(c) gas particles while the real-time factor is measured '
+                             '(default 1000)')
+    parser.add_argument('--rtf-seconds', type=float, default=5.0, metavar='S',
+                        help='(c) seconds per real-time-factor measurement (default 5)')
+    parser.add_argument('--stall-particles', type=int, default=20_000, metavar='N',
+                        help='(c) size of the rejected spawn that stalls the node '
+                             '(default 20000)')
+    parser.add_argument('--particles', type=int, default=10_000, metavar='N',
+                        help='(d) gas particles of the running world (default 10000)')
+    parser.add_argument('--latency-samples', type=int, default=50, metavar='K',
+                        help='(d) spawns timed one at a time (default 50)')
+    parser.add_argument('--timeout', type=float, default=60.0, metavar='S',
+                        help='give up waiting for the node after S quiet seconds (default 60)')
+    parser.add_argument('--parts', default='abcd',
+                        help='which parts to run, e.g. "ad" (default abcd)')
+    parser.add_argument('--domain-id', type=int, default=None,
+                        help='ROS domain of the node and the client (default: from the pid)')
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the parts asked for and print the table; 0 unless the node would not start."""
+    parts = set(args.parts)
+    for name in ('spawns', 'garbage', 'rtf_particles', 'stall_particles', 'particles',
+                 'latency_samples'):
+        if getattr(args, name) < 1:
+            print(f'node-load: --{name.replace("_", "-")} must be >= 1', file=sys.stderr)
+            return 2
+    if not parts <= set('abcd') or not parts:
+        print(f'node-load: --parts takes letters of abcd, got {args.parts!r}', file=sys.stderr)
+        return 2
+    domain_id = args.domain_id if args.domain_id is not None else 1 + os.getpid() % 100
+    load = os.getloadavg()
+    print(f'node-load: load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} '
+          f'({os.cpu_count()} CPUs), ROS domain {domain_id}')
+    rows: list[Row] = []
+    with tempfile.TemporaryDirectory(prefix='node_load_') as workdir:
+        if parts & set('abc'):
+            text = box_scene_text(max(args.spawns + 1, args.rtf_particles))
+            node, client = start_node(text, Path(workdir), 'box', domain_id, args.timeout)
+            try:
+                if 'a' in parts:
+                    rows += spawn_flood(client, node, args.spawns, args.timeout)
+                if 'b' in parts and node.alive():
+                    start = len(client.events)
+                    client.reset.publish(Empty())
+                    client.wait(lambda: len(client.events) > start, args.timeout, node)
+                    rows += garbage_flood(client, node, args.garbage, args.timeout)
+                if 'c' in parts and node.alive():
+                    rows += rtf_around_stall(client, node, args.rtf_particles,
+                                             args.rtf_seconds, args.stall_particles,
+                                             box_side(text), args.timeout)
+            finally:
+                client.close()
+                code = node.stop()
+            rows.append(('-', 'box node exit code', str(code)))
+        if 'd' in parts:
+            text = gas_scene_text(args.particles)
+            node, client = start_node(text, Path(workdir), 'gas', domain_id, args.timeout)
+            try:
+                rows += spawn_latency(client, node, args.latency_samples, args.particles,
+                                      box_side(text), args.timeout)
+            finally:
+                client.close()
+                code = node.stop()
+            rows.append(('-', 'gas node exit code', str(code)))
+    print('| part | measure | value |')
+    print('|---|---|---|')
+    for part, measure, value in rows:
+        print(f'| {part} | {measure} | {value} |')
+    return 0
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    """Run as ``python -m collision_node.bench.node_load``."""
+    parser = argparse.ArgumentParser(prog='python -m collision_node.bench node-load',
+                                     description=__doc__.split('\n')[0])
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

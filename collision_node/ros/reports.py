@@ -1,0 +1,58 @@
+"""The node's reports beside its state: ``/diagnostics`` and ``particles/collisions``.
+
+Both are built only while somebody subscribes. The impacts cost the physics
+something to record, so recording is switched on when the first subscriber
+of ``particles/collisions`` appears and off when the last one leaves
+(``World.record_impacts``); each tick then publishes the impacts resolved
+since the previous one.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.clock import Clock
+from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2
+
+from msg_adapters import impact_cloud_bytes
+
+from ..physics.world import World
+from .diagnostics import diagnostic_array
+from .qos import COLLISIONS_QOS, DIAGNOSTICS_QOS
+
+DIAGNOSTICS_PERIOD = 1.0     # s of wall time between /diagnostics messages
+
+
+class Reports:
+    """Publishers and timer of the reports; the node calls ``publish_collisions`` each tick."""
+
+    def __init__(self, node: Node, status: Callable[[], dict[str, Any]], steady: Clock) -> None:
+        """Create the publishers on ``node`` and the 1 Hz diagnostics timer on ``steady``."""
+        self.node = node
+        self.status = status
+        self.name = f'{node.get_fully_qualified_name().lstrip("/")}: simulation'
+        self.pub_diagnostics = node.create_publisher(DiagnosticArray, '/diagnostics',
+                                                     DIAGNOSTICS_QOS)
+        self.pub_collisions = node.create_publisher(PointCloud2, 'particles/collisions',
+                                                    COLLISIONS_QOS)
+        self.timer = node.create_timer(DIAGNOSTICS_PERIOD, self.publish_diagnostics,
+                                       clock=steady)
+
+    def publish_diagnostics(self) -> None:
+        """Publish the node's health on /diagnostics, stamped with the node's clock."""
+        if self.pub_diagnostics.get_subscription_count():
+            self.pub_diagnostics.publish(diagnostic_array(
+                self.status(), self.name, self.node.get_clock().now().to_msg()))
+
+    def publish_collisions(self, world: World, seconds: float, frame_id: str) -> None:
+        """Publish the impacts since the last tick; have them recorded only while listened to."""
+        listening = self.pub_collisions.get_subscription_count() > 0
+        recording = world.impact_log is not None
+        if recording:
+            impacts = world.take_impacts()
+            if listening:
+                self.pub_collisions.publish(impact_cloud_bytes(impacts, seconds, frame_id))
+        if listening != recording:
+            world.record_impacts(listening)
