@@ -25,7 +25,7 @@ from scipy.spatial import cKDTree
 from .effects import Walls
 from .particles import MAX_COORDINATE, MAX_SPEED
 from .scene import parse_request, parse_spawn_data
-from .validation import SceneError, fail, reject_unknown_keys, vector
+from .validation import fail, reject_unknown_keys, vector
 
 if TYPE_CHECKING:   # World imports this module; the type is only for annotations
     from .world import World
@@ -124,7 +124,8 @@ def parse_ids(value: Any, where: str, limit: int) -> np.ndarray:
         if isinstance(item, list):
             if len(item) != 2:
                 fail(f'{where}[{k}]', f'a range is [first, last], got {len(item)} values')
-            first, last = _one_id(item[0], f'{where}[{k}][0]'), _one_id(item[1], f'{where}[{k}][1]')
+            first = _one_id(item[0], f'{where}[{k}][0]')
+            last = _one_id(item[1], f'{where}[{k}][1]')
             if last < first:
                 fail(f'{where}[{k}]', f'range [{first}, {last}] ends before it starts')
             if last - first + 1 > limit:
@@ -211,8 +212,8 @@ def find_overlap(position: np.ndarray, radius: np.ndarray, ids: np.ndarray,
             gap = new_position[pairs[:, 0]] - new_position[pairs[:, 1]]
             d = np.sqrt(np.einsum('ij,ij->i', gap, gap))
             hit = d < (new_radius[pairs[:, 0]] + new_radius[pairs[:, 1]]) * OVERLAP_SHARE
-            a, b = np.minimum(pairs[hit, 0], pairs[hit, 1]), np.maximum(pairs[hit, 0],
-                                                                         pairs[hit, 1])
+            low, high = pairs[hit].min(axis=1), pairs[hit].max(axis=1)
+            a, b = low, high
         if b.size:
             k = int(np.argmin(b))
             if first is None or int(b[k]) < first[0]:
