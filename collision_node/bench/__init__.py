@@ -20,6 +20,7 @@ SUBCOMMANDS: dict[str, str] = {
     'node': 'collision_node.bench.node',
     'effects': 'collision_node.bench.effects',
     'accuracy': 'collision_node.bench.accuracy',
+    'commands': 'collision_node.bench.commands',
 }
 
 
