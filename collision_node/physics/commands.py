@@ -17,7 +17,7 @@ checks); nothing here knows about ROS.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any, Optional, Union
+from typing import Any, Optional, Union
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -27,8 +27,9 @@ from .particles import MAX_COORDINATE, MAX_SPEED
 from .scene import parse_request, parse_spawn_data
 from .validation import fail, reject_unknown_keys, vector
 
-if TYPE_CHECKING:   # World imports this module; the type is only for annotations
-    from .world import World
+# The request functions take a ``World`` (typed Any: world.py imports this
+# module, and the package keeps no import circle, not even for annotations).
+World = Any
 
 RequestId = Union[str, int, float, None]
 
@@ -232,7 +233,7 @@ def check_no_overlap(position: np.ndarray, radius: np.ndarray, ids: np.ndarray,
 
 # -- request bodies -------------------------------------------------------------
 
-def spawn_request(world: 'World', data: Any, source: str = 'spawn') -> np.ndarray:
+def spawn_request(world: World, data: Any, source: str = 'spawn') -> np.ndarray:
     """Spawn a parsed request's particles (refusing overlaps unless ``allow_overlap``)."""
     body, options = take_options(data, source, ('allow_overlap',))
     particles = parse_spawn_data(body, world.scene.dimensions, len(world.state), source,
@@ -241,7 +242,7 @@ def spawn_request(world: 'World', data: Any, source: str = 'spawn') -> np.ndarra
                        allow_outside=False, source=source)
 
 
-def delete_request(world: 'World', data: Any, source: str = 'delete') -> np.ndarray:
+def delete_request(world: World, data: Any, source: str = 'delete') -> np.ndarray:
     """Delete the particles a request names: ``{ids: [...]}``, a list, or one id."""
     body, _ = take_options(data, source)
     where = f'{source}: ids'
@@ -263,7 +264,7 @@ def _particle_id(body: Any, source: str, keys: tuple[str, ...]) -> int:
     return _one_id(body['id'], f'{source}: id')
 
 
-def teleport_request(world: 'World', data: Any, source: str = 'teleport') -> int:
+def teleport_request(world: World, data: Any, source: str = 'teleport') -> int:
     """Set one particle's position and/or velocity: ``{id, position?, velocity?}``."""
     body, options = take_options(data, source, ('allow_overlap',))
     pid = _particle_id(body, source, ('id', 'position', 'velocity'))
@@ -279,7 +280,7 @@ def teleport_request(world: 'World', data: Any, source: str = 'teleport') -> int
     return pid
 
 
-def impulse_request(world: 'World', data: Any, source: str = 'impulse') -> int:
+def impulse_request(world: World, data: Any, source: str = 'impulse') -> int:
     """Apply an impulse (N s) to one particle: ``{id, impulse: [jx, jy(, jz)]}``."""
     body, _ = take_options(data, source)
     pid = _particle_id(body, source, ('id', 'impulse'))

@@ -20,7 +20,7 @@ module only routes messages and formats answers.
 from __future__ import annotations
 
 import json
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable
 
 from rclpy.parameter import Parameter
 from std_msgs.msg import Empty, String
@@ -32,17 +32,18 @@ from ..physics.validation import SceneError
 from ..physics.world import NonFiniteStateError
 from .qos import COMMAND_QOS, EVENTS_QOS
 
-if TYPE_CHECKING:   # the node imports this module
-    from .node import CollisionNode
-
 MAX_REASON = 400             # characters of a refusal reason in an answer
 
 
 class CommandInterface:
     """Subscriptions and services of the node's commands, and its answers on ``events``."""
 
-    def __init__(self, node: 'CollisionNode') -> None:
-        """Create the ``events`` publisher and every command subscription and service."""
+    def __init__(self, node: Any) -> None:
+        """Create ``events`` and every command subscription and service on ``node``.
+
+        ``node`` is the :class:`~collision_node.ros.node.CollisionNode` (typed
+        Any: node.py imports this module and the package keeps no import circle).
+        """
         self.node = node
         self.seq = 0
         self.pub_events = node.create_publisher(String, 'events', EVENTS_QOS)
