@@ -61,7 +61,7 @@ def test_scene_file_parameter_then_sigterm_exits_zero(tmp_path):
 @pytest.mark.parametrize('parameter, message', [
     ('scene:={tmp}/nope.yaml', 'no such scene file'),
     ('accuracy:=sloppy', 'parameter accuracy: unknown preset'),
-    ('frame_id:=my frame', 'frame_id: must be a non-empty name without spaces'),
+    ('frame_id:=my frame', 'frame_id: must be a frame name'),
     ('max_particles:=3', 'exceed max_particles = 3'),
 ])
 def test_bad_start_up_exits_2_with_one_error_line(tmp_path, parameter, message):

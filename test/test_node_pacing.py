@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from collision_node import load_scene, World
-from collision_node.ros.pacing import Pacer, RateMeter
+from collision_node.ros.pacing import Lag, Pacer, RateMeter
 from collision_node.ros.parameters import DEFAULT_SCENE, PARAMETERS
 
 
@@ -25,6 +25,48 @@ def test_restart_moves_the_anchor_and_never_asks_for_negative_steps():
     assert pacer.steps_due(5.0, 1.0) == 0
     assert pacer.steps_due(5.2, 1.0) == 20
     assert pacer.steps_due(5.2, 3.0) == 0                # ahead of wall time: wait
+
+
+def test_drop_backlog_keeps_one_tick_and_never_raises_the_target():
+    pacer = Pacer(dt=0.01, factor=2.0, wall=0.0, sim_time=0.0)
+    # 0.5 s of wall time passed while the world stood at 0: 1.0 s of simulated time due.
+    dropped = pacer.drop_backlog(0.5, 0.0, tick=0.1)
+    keep = 0.01 + 2.0 * 0.1
+    assert dropped == pytest.approx(1.0 - keep) and pacer.dropped == pytest.approx(dropped)
+    assert pacer.target(0.5) == pytest.approx(keep)
+    assert pacer.steps_due(0.5, 0.0) == 21
+    # Within the allowance nothing is dropped and the target follows wall time.
+    assert pacer.drop_backlog(0.55, 0.15, tick=0.1) == 0.0
+    assert pacer.target(0.55) == pytest.approx(keep + 0.1)
+
+
+def test_simulated_time_never_runs_ahead_of_wall_time_through_slow_ticks():
+    """A world that falls behind, then runs fast again, never passes wall x factor."""
+    dt, factor, tick = 1.0 / 240.0, 1.0, 1.0 / 30.0
+    pacer = Pacer(dt=dt, factor=factor, wall=0.0, sim_time=0.0)
+    steps, wall = 0, 0.0
+    for k in range(600):
+        wall += tick * (10.0 if k == 100 else 1.0)      # one tick stalls for 10 periods
+        pacer.drop_backlog(wall, steps * dt, tick)
+        due = pacer.steps_due(wall, steps * dt)
+        steps += due if not 100 <= k < 110 else min(due, 2)   # then a slow stretch
+        assert steps * dt <= wall * factor + 1e-9
+    # After the stall and the slow stretch it runs at the requested rate, not faster.
+    assert pacer.dropped > 0.2
+    assert steps * dt == pytest.approx(wall * factor - pacer.dropped, abs=dt + factor * tick)
+
+
+def test_lag_reports_an_episode_once_and_ends_it_after_keeping_up():
+    lag = Lag(caught_up_after=1.0)
+    assert lag.note(0.0, behind=False) is None
+    assert lag.note(0.1, behind=True, dropped=0.5) == 'start'
+    assert lag.note(0.2, behind=True, dropped=0.25) is None
+    assert lag.dropped == 0.75 and lag.behind
+    assert lag.note(0.3, behind=False) is None
+    assert lag.note(0.9, behind=True) is None               # still the same episode
+    assert lag.note(1.0, behind=False) is None
+    assert lag.note(2.0, behind=False) == 'end' and not lag.behind
+    assert lag.note(2.1, behind=True) == 'start'
 
 
 def test_rate_meter_measures_over_its_window():

@@ -21,6 +21,7 @@ SUBCOMMANDS: dict[str, str] = {
     'effects': 'collision_node.bench.effects',
     'accuracy': 'collision_node.bench.accuracy',
     'node-load': 'collision_node.bench.node_load',
+    'commands': 'collision_node.bench.commands',
 }
 
 

@@ -8,6 +8,7 @@ source, the particle index and the field.
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import sys
@@ -196,18 +197,53 @@ def parse_particle_section(particles: Any, generate: Any, source: str, dimension
     return state
 
 
+def parse_request(text: str, source: str) -> Any:
+    """Parse a request's text (YAML or JSON) into plain data: every command goes through here.
+
+    Spawn, delete, teleport, impulse and step requests all use this one
+    function, so every text a user sends meets the same parser and the same
+    one-line error. Text that is valid JSON is read by the JSON parser (a
+    YAML subset, 50x faster than PyYAML's pure-Python one, which matters for
+    bursts of thousands of requests); anything else goes to the YAML loader.
+    """
+    if text[:1] in ('{', '['):
+        try:
+            return json.loads(text, parse_float=_json_float, parse_constant=_no_constant)
+        except ValueError:
+            pass            # not strict JSON (or NaN/Infinity): YAML decides
+    try:
+        return load_yaml(text)
+    except yaml.YAMLError as error:
+        raise SceneError(f'{source}: not valid YAML or JSON: {_one_line(error)}') from None
+
+
+def _json_float(text: str) -> float:
+    """Read a JSON number like the YAML loader: one that overflows is marked, not inf."""
+    value = float(text)
+    return OverflowedNumber(text) if math.isinf(value) else value
+
+
+def _no_constant(name: str) -> None:
+    """Refuse JSON's NaN and Infinity extensions, so YAML reads them as it always did."""
+    raise ValueError(name)
+
+
 def parse_spawn(text: str, dimensions: int, first_id: int, source: str = 'spawn',
                 max_particles: Optional[int] = None) -> ParticleState:
     """Validate a spawn request (YAML or JSON) with the scene's particle schema.
 
     Accepted: one particle mapping, a list of them, one ``generate`` entry
     (a mapping with ``kind``), or ``{particles: [...], generate: [...]}``.
-    ``max_particles`` bounds the world's size after the spawn.
+    ``max_particles`` bounds the world's size after the spawn; ``first_id``
+    is the world's particle count (the new ids and the bound count from it).
     """
-    try:
-        data = load_yaml(text)
-    except yaml.YAMLError as error:
-        raise SceneError(f'{source}: not valid YAML or JSON: {_one_line(error)}') from None
+    return parse_spawn_data(parse_request(text, source), dimensions, first_id, source,
+                            max_particles)
+
+
+def parse_spawn_data(data: Any, dimensions: int, first_id: int, source: str = 'spawn',
+                     max_particles: Optional[int] = None) -> ParticleState:
+    """Validate already parsed spawn data (see :func:`parse_spawn`)."""
     if isinstance(data, list):
         return parse_particle_section(data, None, source, dimensions, first_id, max_particles)
     data = require_mapping(data, source)
@@ -226,5 +262,5 @@ def _one_line(error: Exception) -> str:
     return ' '.join(str(error).split())
 
 
-__all__ = ['Scene', 'SceneError', 'load_scene', 'parse_scene', 'parse_scene_text',
-           'parse_spawn', 'shipped_scene_names']
+__all__ = ['Scene', 'SceneError', 'load_scene', 'parse_request', 'parse_scene',
+           'parse_scene_text', 'parse_spawn', 'parse_spawn_data', 'shipped_scene_names']

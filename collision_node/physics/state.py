@@ -95,6 +95,14 @@ class ParticleState:
             kwargs[f.name] = np.concatenate([mine, theirs])
         return ParticleState(**kwargs)
 
+    def subset(self, rows: np.ndarray) -> 'ParticleState':
+        """Return a new state of the particles ``rows`` (indices or a mask), arrays copied."""
+        kwargs = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            kwargs[f.name] = None if value is None else value[rows].copy()
+        return ParticleState(**kwargs)
+
     def with_arrays(self, **arrays: np.ndarray) -> 'ParticleState':
         """Return a shallow copy with some arrays replaced."""
         return replace(self, **arrays)

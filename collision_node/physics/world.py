@@ -13,13 +13,15 @@ import numpy as np
 
 from . import energy
 from .accuracy import check_event_particles
+from .commands import check_inside_walls, check_no_overlap, rows_of
 from .effects import check_particles_for_effects
 from .impacts import ImpactLog
+from .particles import MAX_SPEED
 from .plan import build_pipeline
 from .step import StepContext, StepStats
 from .scene import Scene, parse_spawn
 from .state import ParticleState
-from .validation import SceneError
+from .validation import SceneError, fail
 
 
 class NonFiniteStateError(FloatingPointError):
@@ -48,6 +50,11 @@ class World:
         self.pipeline = build_pipeline(self.scene.effects, self.scene.accuracy)
         self.energy_start = energy.mechanical(self.state, self.scene.effects.gravity)
         self.energy_spawned = 0.0
+        # Energy changed by commands (delete, teleport, impulse), so the balance holds.
+        self.energy_commanded = 0.0
+        # Ids are stable: the scene's are 0..n-1, a spawn takes ids after the
+        # largest ever given, a delete leaves a gap (ids stay ascending by row).
+        self.next_id = int(self.state.ids.max()) + 1 if len(self.state) else 0
 
     def _with_spin_state(self, state: ParticleState) -> ParticleState:
         """Give every particle spin and orientation iff the scene simulates spin."""
@@ -106,27 +113,111 @@ class World:
             raise NonFiniteStateError(f'step {self.steps}: a position or velocity became '
                                       'non-finite')
 
-    def spawn(self, particles: ParticleState) -> np.ndarray:
-        """Append validated particles atomically and return their new ids."""
+    def spawn(self, particles: ParticleState, *, allow_overlap: bool = True,
+              allow_outside: bool = True, source: str = 'spawn') -> np.ndarray:
+        """Append validated particles atomically and return their new ids.
+
+        With ``allow_outside=False`` a particle not inside the walls is
+        refused, with ``allow_overlap=False`` one overlapping an existing
+        particle or another new one (the node's requests ask for both
+        checks; the API default keeps the checks off).
+        """
         if self.max_particles is not None and \
                 len(self.state) + len(particles) > self.max_particles:
-            raise SceneError(f'spawn: {len(particles)} particles would make '
+            raise SceneError(f'{source}: {len(particles)} particles would make '
                              f'{len(self.state) + len(particles)}, over max_particles = '
                              f'{self.max_particles}')
-        check_particles_for_effects(particles, self.scene.effects, 'spawn: ')
+        check_particles_for_effects(particles, self.scene.effects, f'{source}: ')
         check_event_particles(self.scene.accuracy, self.scene.effects, particles.inv_mass,
-                              'spawn: ')
-        first = len(self.state)
+                              f'{source}: ')
+        where = f'{source}: particle {{}} of the request'
+        if not allow_outside:
+            check_inside_walls(particles.position, particles.radius, self.scene.effects.walls,
+                               self.scene.dimensions, where)
+        if not allow_overlap:
+            check_no_overlap(self.state.position, self.state.radius, self.state.ids,
+                             particles.position, particles.radius, where)
+        first = self.next_id
         ids = np.arange(first, first + len(particles), dtype=np.int64)
         added = self._with_spin_state(particles.with_arrays(ids=ids))
         self.state = self.state.concatenate(added)
+        self.next_id = first + len(particles)
         self.energy_spawned += energy.mechanical(added, self.scene.effects.gravity)
         return ids
 
     def spawn_text(self, text: str, source: str = 'spawn') -> np.ndarray:
         """Validate a spawn request (YAML or JSON) and append it atomically."""
         return self.spawn(parse_spawn(text, self.scene.dimensions, len(self.state), source,
-                                      self.max_particles))
+                                      self.max_particles), source=source)
+
+    def rows(self, ids: np.ndarray, source: str = 'ids') -> np.ndarray:
+        """Return the rows of particles ``ids``; raise naming an id that does not exist."""
+        return rows_of(self.state.ids, np.asarray(ids, dtype=np.int64), source)
+
+    def delete(self, ids: np.ndarray, source: str = 'delete') -> np.ndarray:
+        """Remove particles ``ids`` atomically; the others keep their ids. Return the ids."""
+        ids = np.unique(np.asarray(ids, dtype=np.int64))
+        rows = self.rows(ids, f'{source}: ids')
+        keep = np.ones(len(self.state), dtype=bool)
+        keep[rows] = False
+        removed = self.state.subset(rows)
+        self.energy_commanded -= energy.mechanical(removed, self.scene.effects.gravity)
+        self.state = self.state.subset(keep)
+        return ids
+
+    def teleport(self, pid: int, position: Optional[np.ndarray] = None,
+                 velocity: Optional[np.ndarray] = None, *, allow_overlap: bool = False,
+                 source: str = 'teleport') -> None:
+        """Set particle ``pid``'s position and/or velocity atomically.
+
+        The new position must be inside the walls and (unless
+        ``allow_overlap``) clear of every other particle; a static particle
+        may be moved but not given a velocity.
+        """
+        row = int(self.rows(np.array([pid]), f'{source}: id')[0])
+        s = self.state
+        if velocity is not None and s.inv_mass[row] == 0.0 and np.any(velocity != 0.0):
+            fail(f'{source}: velocity', f'particle {pid} is static (mass .inf) and cannot move')
+        if position is not None:
+            where = f'{source}: position'
+            check_inside_walls(position[None, :], s.radius[row:row + 1],
+                               self.scene.effects.walls, self.scene.dimensions, where)
+            if not allow_overlap:
+                others = np.arange(len(s)) != row
+                check_no_overlap(s.position[others], s.radius[others], s.ids[others],
+                                 position[None, :], s.radius[row:row + 1], where)
+        self._replace_row(row, position, velocity)
+
+    def apply_impulse(self, pid: int, impulse: np.ndarray, source: str = 'impulse') -> None:
+        """Add ``impulse`` (N s) to particle ``pid``'s momentum: v += J / m."""
+        row = int(self.rows(np.array([pid]), f'{source}: id')[0])
+        inv_mass = self.state.inv_mass[row]
+        if inv_mass == 0.0:
+            fail(f'{source}: id', f'particle {pid} is static (mass .inf): an impulse cannot '
+                                  'move it')
+        velocity = self.state.velocity[row] + np.asarray(impulse, dtype=float) * inv_mass
+        speed = float(np.linalg.norm(velocity))
+        if not speed <= MAX_SPEED:
+            fail(f'{source}: impulse', f'would give particle {pid} a speed of {speed:g} m/s, '
+                                       f'over the supported {MAX_SPEED:g}')
+        self._replace_row(row, None, velocity)
+
+    def _replace_row(self, row: int, position: Optional[np.ndarray],
+                     velocity: Optional[np.ndarray]) -> None:
+        """Give one particle a new position/velocity in a new state, booking the energy."""
+        gravity = self.scene.effects.gravity
+        before = energy.mechanical(self.state.subset([row]), gravity)
+        arrays = {}
+        if position is not None:
+            arrays['position'] = self.state.position.copy()
+            arrays['position'][row] = position
+        if velocity is not None:
+            arrays['velocity'] = self.state.velocity.copy()
+            arrays['velocity'][row] = velocity
+        # A new state object (not an in-place edit), so stages that cache the
+        # last step's state (event mode) start afresh.
+        self.state = self.state.with_arrays(**arrays)
+        self.energy_commanded += energy.mechanical(self.state.subset([row]), gravity) - before
 
     def explain(self) -> str:
         """Return the step pipeline, one numbered stage per line."""
@@ -141,18 +232,19 @@ class World:
 
         ``kinetic_linear``, ``kinetic_rotational``, ``potential`` (gravity,
         zero at the origin) and their ``total`` now; ``start`` (at reset)
-        plus ``spawned`` (brought in by spawns); ``dissipated``, the energy
+        plus ``spawned`` (brought in by spawns) plus ``commanded`` (changed by
+        delete, teleport and impulse commands); ``dissipated``, the energy
         each effect removed (a negative entry added energy, e.g.
         'separation' lifting particles under gravity); and
-        ``balance_error`` = total + sum(dissipated) - start - spawned, which
+        ``balance_error`` = total + sum(dissipated) - start - spawned - commanded, which
         is zero up to rounding.
         """
         report = energy.breakdown(self.state, self.scene.effects.gravity)
         dissipated = dict(self.stats.dissipated)
         report.update(start=self.energy_start, spawned=self.energy_spawned,
-                      dissipated=dissipated,
+                      commanded=self.energy_commanded, dissipated=dissipated,
                       balance_error=report['total'] + sum(dissipated.values())
-                      - self.energy_start - self.energy_spawned)
+                      - self.energy_start - self.energy_spawned - self.energy_commanded)
         return report
 
     def momentum(self) -> np.ndarray:

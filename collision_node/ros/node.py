@@ -22,8 +22,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import PointCloud2
-from std_msgs.msg import Empty, String
-from std_srvs.srv import Trigger
+from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
 from msg_adapters import (clock_message, marker_array_bytes, point_cloud_bytes,
@@ -33,9 +32,12 @@ from ..physics.accuracy import parse_accuracy_text
 from ..physics.scene import load_scene
 from ..physics.validation import SceneError
 from ..physics.world import NonFiniteStateError, World
-from .pacing import BACKLOG_KEPT, Pacer, RateMeter, STEP_BUDGET
-from .parameters import DEFAULT_SCENE, invalid_parameter, PARAMETERS
-from .qos import COMMAND_QOS, STATE_QOS, STATUS_QOS, VELOCITY_QOS
+from .cli import check_command_line
+from .commands import CommandInterface
+from .pacing import Lag, Pacer, RateMeter, STEP_BUDGET
+from .parameters import (as_double, DEFAULT_SCENE, integers_as_doubles, invalid_parameter,
+                         PARAMETERS)
+from .qos import STATE_QOS, STATUS_QOS, VELOCITY_QOS
 from .reports import Reports
 from .status import status_report
 
@@ -44,11 +46,16 @@ STATUS_PERIOD = 0.5          # s of wall time between status messages
 
 
 class CollisionNode(Node):
-    """Steps a world in (scaled) real time and publishes it; takes spawn and reset."""
+    """Steps a world in (scaled) real time and publishes it; takes commands (commands.py)."""
 
     def __init__(self, **kwargs: Any) -> None:
         """Declare parameters, load the scene, create the ROS interfaces."""
         super().__init__(NODE_NAME, **kwargs)
+        # '-p real_time_factor:=2' arrives as an integer; declaring a double
+        # parameter with it would fail, so such overrides become doubles first.
+        overrides = getattr(self, '_parameter_overrides', {})
+        for name in list(overrides):
+            overrides[name] = as_double(overrides[name])
         for name, (default, descriptor) in PARAMETERS.items():
             self.declare_parameter(name, default, descriptor)
         value = self._parameter_values()
@@ -68,7 +75,7 @@ class CollisionNode(Node):
         self.frame_id = value['frame_id']
         self.failed: Optional[str] = None
         self.keeping_up = True
-        self.behind_reported = False
+        self.lag = Lag()
         self.pacer = Pacer(self.world.dt, self.real_time_factor, time.monotonic(),
                            self.world.time)
         self.meter = RateMeter()
@@ -80,11 +87,8 @@ class CollisionNode(Node):
         self.pub_state = self.create_publisher(PointCloud2, 'particles/state', STATE_QOS)
         self.pub_markers = self.create_publisher(MarkerArray, 'particles/markers', STATE_QOS)
         self.pub_clock = self.create_publisher(ClockMsg, '/clock', STATE_QOS)
-        self.pub_events = self.create_publisher(String, 'events', COMMAND_QOS)
         self.pub_status = self.create_publisher(String, 'status', STATUS_QOS)
-        self.create_subscription(String, 'spawn', self._on_spawn, COMMAND_QOS)
-        self.create_subscription(Empty, 'reset', self._on_reset_topic, COMMAND_QOS)
-        self.create_service(Trigger, 'reset', self._on_reset_service)
+        self.commands = CommandInterface(self)
 
         # Timers run on the steady clock: the node lives in wall time even
         # if somebody sets use_sim_time (it is the source of /clock).
@@ -94,6 +98,7 @@ class CollisionNode(Node):
         self.status_timer = self.create_timer(STATUS_PERIOD, self._publish_status,
                                               clock=self.steady)
         self.reports = Reports(self, self.status, self.steady)   # /diagnostics, collisions
+        self.add_pre_set_parameters_callback(integers_as_doubles)
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
@@ -120,20 +125,25 @@ class CollisionNode(Node):
         return SetParametersResult(successful=True)
 
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
-        """Apply accepted runtime changes at once."""
+        """Apply accepted runtime changes from the next tick on."""
         now = time.monotonic()
         for p in parameters:
             if p.name == 'real_time_factor':
                 self.real_time_factor = p.value
                 self.pacer.factor = p.value
                 self.pacer.restart(now, self.world.time)
+                self.lag.clear()
                 self.keeping_up = True
             elif p.name == 'publish_rate':
                 self.publish_rate = p.value
+                # The new period counts from now: without the reset the next
+                # tick would still come a whole old period (up to 10 s) later.
                 self.tick_timer.timer_period_ns = int(1e9 / p.value)
+                self.tick_timer.reset()
             elif p.name == 'paused':
                 self.paused = p.value
                 self.pacer.restart(now, self.world.time)
+                self.lag.clear()
             elif p.name == 'publish_clock':
                 self.publish_clock = p.value
             elif p.name == 'frame_id':
@@ -148,8 +158,9 @@ class CollisionNode(Node):
         return self.world.stats.collisions + self.world.stats.wall_collisions
 
     def _advance(self) -> None:
-        """Take the steps due, within this tick's budget; never drop one."""
+        """Take the steps due within this tick's budget; drop a backlog, never run ahead."""
         start = time.monotonic()
+        dropped = self.pacer.drop_backlog(start, self.world.time, 1.0 / self.publish_rate)
         due = self.pacer.steps_due(start, self.world.time)
         deadline = start + STEP_BUDGET / self.publish_rate
         done = 0
@@ -163,21 +174,16 @@ class CollisionNode(Node):
             self.failed = str(error)
             self.get_logger().error(f'stopped stepping: {error}; reset to go on')
             return
-        if done < due:
-            # Behind: run slower than real time from here instead of chasing the
-            # whole backlog, but keep a little of it so that every tick has work
-            # at once (with none, the overdue next tick would find nothing due
-            # and the physics would idle while it is behind).
-            self.pacer.restart(time.monotonic() - BACKLOG_KEPT, self.world.time)
-            self.keeping_up = False
-            if not self.behind_reported:
-                self.behind_reported = True
-                self.get_logger().warning(
-                    f'cannot keep up with real-time factor {self.real_time_factor:g}: '
-                    f'{len(self.world.state)} particles at dt = {self.world.dt:g} s; running '
-                    'slower than requested (no step is dropped); see the status topic')
-        elif due:
-            self.keeping_up = True
+        change = self.lag.note(time.monotonic(), dropped > 0.0 or done < due, dropped)
+        self.keeping_up = not self.lag.behind
+        if change == 'start':
+            self.get_logger().warning(
+                f'cannot keep up with real-time factor {self.real_time_factor:g}: '
+                f'{len(self.world.state)} particles at dt = {self.world.dt:g} s; running '
+                'slower than requested, dropping the backlog (status: dropped_backlog_s)')
+        elif change == 'end':
+            self.get_logger().info(f'keeping up again; {self.lag.dropped:g} s of simulated '
+                                   'time were dropped while behind')
 
     def _tick(self) -> None:
         """Step, then publish every output somebody subscribes to."""
@@ -207,69 +213,39 @@ class CollisionNode(Node):
 
     def status(self) -> dict[str, Any]:
         """Return the node's status as a JSON-ready mapping."""
-        return status_report(self.world, self.scene.name, self.meter.rates(),
-                             paused=self.paused, real_time_factor=self.real_time_factor,
-                             keeping_up=self.keeping_up, publish_rate=self.publish_rate,
-                             frame_id=self.frame_id, error=self.failed)
+        report = status_report(self.world, self.scene.name, self.meter.rates(),
+                               paused=self.paused, real_time_factor=self.real_time_factor,
+                               keeping_up=self.keeping_up, publish_rate=self.publish_rate,
+                               frame_id=self.frame_id, error=self.failed)
+        report['dropped_backlog_s'] = self.pacer.dropped
+        return report
 
     def _publish_status(self) -> None:
         """Publish the status on ``status`` (JSON)."""
         self.pub_status.publish(String(data=json.dumps(self.status())))
 
-    # -- commands ---------------------------------------------------------
+    # -- commands (the topics and services are in commands.py) ------------
 
-    def _event(self, event: dict[str, Any]) -> None:
-        """Answer a request on ``events`` (JSON)."""
-        self.pub_events.publish(String(data=json.dumps(event)))
-
-    def _on_spawn(self, msg: String) -> None:
-        """Add the requested particles atomically, or reject the whole request."""
-        try:
-            ids = self.world.spawn_text(msg.data, source='spawn')
-        except SceneError as error:
-            reason = str(error)
-        except Exception as error:  # noqa: B902 - a bad request must never stop the node
-            reason = f'spawn: {type(error).__name__}: {error}'
-        else:
-            self.get_logger().info(f'spawned {ids.size} particles (ids {ids[0]}..{ids[-1]})'
-                                   if ids.size else 'spawn request held no particles')
-            self._event({'request': 'spawn', 'accepted': True, 'ids': ids.tolist(),
-                         'particles': len(self.world.state)})
-            return
-        self.get_logger().warning(f'rejected {reason}')
-        self._event({'request': 'spawn', 'accepted': False, 'reason': reason,
-                     'particles': len(self.world.state)})
-
-    def reset_world(self, request: str) -> str:
-        """Return to the scene's initial state at time 0 and announce it."""
+    def reset_world(self) -> str:
+        """Return to the scene's initial state at time 0; return the log line."""
         self.world.reset()
         self.failed = None
         now = time.monotonic()
         self.pacer.restart(now, self.world.time)
+        self.lag.clear()
         self.meter.clear()
         self.meter.add(now, self.world.time, self._collisions())
         message = f'reset to {self.scene.name}: {len(self.world.state)} particles, time 0'
         self.get_logger().info(message)
-        self._event({'request': request, 'accepted': True,
-                     'ids': self.world.state.ids.tolist(),
-                     'particles': len(self.world.state)})
         self._publish_status()
         return message
-
-    def _on_reset_topic(self, msg: Empty) -> None:
-        """Reset on a message on the ``reset`` topic."""
-        self.reset_world('reset')
-
-    def _on_reset_service(self, request: Trigger.Request,
-                          response: Trigger.Response) -> Trigger.Response:
-        """Reset on a ``reset`` service call and reply."""
-        response.message = self.reset_world('reset')
-        response.success = True
-        return response
 
 
 def main(args: Optional[list[str]] = None) -> int:
     """Run the node until Ctrl-C, SIGTERM or shutdown; 0 on a clean exit, 2 on bad set-up."""
+    code = check_command_line(args)
+    if code is not None:
+        return code
     rclpy.init(args=args)
     node = None
     try:

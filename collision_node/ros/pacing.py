@@ -4,25 +4,31 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from typing import Optional
 
 RATE_WINDOW = 2.0            # s of wall time over which rates are measured
 STEP_BUDGET = 0.8            # share of a tick period the physics may use
-BACKLOG_KEPT = 0.25          # s of wall time the physics may lag once it fell behind
+CAUGHT_UP_AFTER = 1.0        # s of wall time keeping up that end an episode of lagging
 
 
 class Pacer:
     """Count the fixed steps due so that simulated time follows wall time x factor.
 
-    Simulated time is anchored to a wall instant; the anchor moves whenever
-    the factor changes, the world resumes or is reset, or the physics fell
-    behind (so a backlog is never chased beyond BACKLOG_KEPT: the world
-    runs slower instead, stepping all the time it is given).
+    Simulated time is anchored to a wall instant: the target is
+    ``sim_anchor + (wall - wall_anchor) x factor`` and the world never steps
+    past it, so simulated time never runs ahead of wall time x factor. The
+    anchor moves when the factor changes, the world resumes or is reset
+    (:meth:`restart`), and when the physics fell behind
+    (:meth:`drop_backlog`): then the target is lowered, never raised, so
+    the backlog beyond one tick's worth is dropped (and counted in
+    ``dropped``) instead of being chased.
     """
 
     def __init__(self, dt: float, factor: float, wall: float, sim_time: float) -> None:
         """Anchor simulated time ``sim_time`` at wall time ``wall``."""
         self.dt = dt
         self.factor = factor
+        self.dropped = 0.0           # simulated seconds dropped so far
         self.restart(wall, sim_time)
 
     def restart(self, wall: float, sim_time: float) -> None:
@@ -30,11 +36,68 @@ class Pacer:
         self.wall_anchor = wall
         self.sim_anchor = sim_time
 
+    def target(self, wall: float) -> float:
+        """Return the simulated time due at wall time ``wall``."""
+        return self.sim_anchor + (wall - self.wall_anchor) * self.factor
+
     def steps_due(self, wall: float, sim_time: float) -> int:
         """Return the whole steps needed to bring ``sim_time`` up to the target."""
-        target = self.sim_anchor + (wall - self.wall_anchor) * self.factor
         # The small tolerance keeps float noise from deferring a step a tick.
-        return max(0, math.floor((target - sim_time) / self.dt + 1e-9))
+        return max(0, math.floor((self.target(wall) - sim_time) / self.dt + 1e-9))
+
+    def drop_backlog(self, wall: float, sim_time: float, tick: float) -> float:
+        """Drop the backlog beyond one tick's worth; return the simulated seconds dropped.
+
+        A tick of ``tick`` wall seconds may carry ``dt + factor x tick`` of
+        backlog (a step that did not fit the last tick, plus this tick's
+        share); anything beyond is dropped by moving the anchor so the
+        target is lower. The world then runs slower than asked instead of
+        running faster than wall time later to catch up.
+        """
+        keep = self.dt + self.factor * tick
+        backlog = self.target(wall) - sim_time
+        if backlog <= keep:
+            return 0.0
+        dropped = backlog - keep
+        self.sim_anchor -= dropped
+        self.dropped += dropped
+        return dropped
+
+
+class Lag:
+    """Episodes of falling behind, so that each is logged once.
+
+    An episode starts at the first tick that could not do everything due
+    and ends once the ticks kept up for ``CAUGHT_UP_AFTER`` seconds.
+    """
+
+    def __init__(self, caught_up_after: float = CAUGHT_UP_AFTER) -> None:
+        """Start keeping up."""
+        self.caught_up_after = caught_up_after
+        self.behind = False
+        self.since: Optional[float] = None       # wall time the ticks began to keep up
+        self.dropped = 0.0                       # simulated seconds dropped this episode
+
+    def note(self, wall: float, behind: bool, dropped: float = 0.0) -> Optional[str]:
+        """Record one tick; return 'start' or 'end' when an episode starts or ends."""
+        if behind:
+            self.since = None
+            if not self.behind:
+                self.behind, self.dropped = True, dropped
+                return 'start'
+            self.dropped += dropped
+            return None
+        if self.behind:
+            if self.since is None:
+                self.since = wall
+            elif wall - self.since >= self.caught_up_after:
+                self.behind, self.since = False, None
+                return 'end'
+        return None
+
+    def clear(self) -> None:
+        """Forget an episode (after a reset, a resume or a new factor)."""
+        self.behind, self.since, self.dropped = False, None, 0.0
 
 
 class RateMeter:

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import math
+import re
 from typing import Any, Optional
 
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType)
+from rclpy.parameter import Parameter
 
 # The shipped scene the node runs when no scene is given.
 DEFAULT_SCENE = 'elastic_break'
@@ -55,12 +57,40 @@ PARAMETERS: dict[str, tuple[Any, ParameterDescriptor]] = {
 }
 
 
+# Parameters of type double that also take an integer (``-p real_time_factor:=2``,
+# ``ros2 param set ... 2``): the integer is converted before any check.
+DOUBLE_PARAMETERS = tuple(name for name, (_, d) in PARAMETERS.items()
+                          if d.type == ParameterType.PARAMETER_DOUBLE)
+# A frame name as tf2 and RViz take it: a letter or underscore, then letters,
+# digits, underscores and slashes (``robot1/base_link``); no whitespace or
+# control characters, at most MAX_FRAME_ID characters.
+FRAME_ID = re.compile(r'[A-Za-z_][A-Za-z0-9_/]*')
+MAX_FRAME_ID = 256
+
+
+def as_double(parameter: Parameter) -> Parameter:
+    """Return ``parameter`` with an integer value turned into a double if it is a double one."""
+    if parameter.name in DOUBLE_PARAMETERS and parameter.type_ == Parameter.Type.INTEGER:
+        return Parameter(parameter.name, Parameter.Type.DOUBLE, float(parameter.value))
+    return parameter
+
+
+def integers_as_doubles(parameters: list[Parameter]) -> list[Parameter]:
+    """Pre-set callback: integers given to double parameters become doubles."""
+    return [as_double(p) for p in parameters]
+
+
 def invalid_parameter(values: dict[str, Any]) -> Optional[str]:
     """Return why a set of parameter values is invalid, or None."""
-    for name in ('real_time_factor', 'publish_rate'):
-        if name in values and not math.isfinite(values[name]):
-            return f'{name}: must be finite, got {values[name]!r}'
+    for name in DOUBLE_PARAMETERS:
+        if name in values and isinstance(values[name], float) and \
+                not math.isfinite(values[name]):
+            return f'{name}: must be finite (out of range), got {values[name]!r}'
     frame = values.get('frame_id')
-    if frame is not None and (not frame or frame != frame.strip() or ' ' in frame):
-        return f'frame_id: must be a non-empty name without spaces, got {frame!r}'
+    if isinstance(frame, str):
+        if len(frame) > MAX_FRAME_ID:
+            return f'frame_id: longer than {MAX_FRAME_ID} characters ({len(frame)})'
+        if not FRAME_ID.fullmatch(frame):
+            return ('frame_id: must be a frame name ([A-Za-z_][A-Za-z0-9_/]*, no spaces or '
+                    f'control characters), got {frame[:40]!r}')
     return None

@@ -16,8 +16,13 @@ def reliable_qos(depth: int, durability: DurabilityPolicy = DurabilityPolicy.VOL
 STATE_QOS = reliable_qos(1)
 # Velocities: one message per particle per tick, so the queue holds a tick's burst.
 VELOCITY_QOS = reliable_qos(1000)
-# Commands and their answers: a deeper queue, none may be lost.
-COMMAND_QOS = reliable_qos(50)
+# Commands: keep every request until the node has taken it (a burst of
+# 10,000 spawns from one publisher all land; reliable flow control holds the
+# rest at the sender while the node's queue is full).
+COMMAND_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+# Answers: none may be dropped by the node either.
+EVENTS_QOS = COMMAND_QOS
 # Status: the newest one, kept for late joiners (a viewer started later).
 STATUS_QOS = reliable_qos(1, DurabilityPolicy.TRANSIENT_LOCAL)
 # Impacts: every tick's batch counts (a listener prints each impact), so a few seconds' worth.

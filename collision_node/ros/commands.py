@@ -1,0 +1,175 @@
+"""The node's commands: topics and services in, one JSON answer per request on ``events``.
+
+Topics (``std_msgs/String``, YAML or JSON, parsed by the physics'
+``parse_request``): ``spawn``, ``delete``, ``teleport``, ``impulse``,
+``step``; ``reset`` (``std_msgs/Empty``). Services: ``reset``
+(``std_srvs/Trigger``) and ``pause`` (``std_srvs/SetBool``). Each request
+gets exactly one answer on ``events``::
+
+    {"seq": 7, "request": "spawn", "request_id": "a1", "accepted": true,
+     "ids": [[16, 17]], "particles": 18}
+    {"seq": 8, "request": "teleport", "request_id": null, "accepted": false,
+     "reason": "teleport: id: no particle with id 99", "particles": 18}
+
+``seq`` counts answers from 1; ``request_id`` echoes the request's own
+(null without one); ``ids`` are inclusive ``[first, last]`` ranges. The
+checks themselves live in :mod:`collision_node.physics.commands`; this
+module only routes messages and formats answers.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any, Callable
+
+from rclpy.parameter import Parameter
+from std_msgs.msg import Empty, String
+from std_srvs.srv import SetBool, Trigger
+
+from ..physics.commands import (delete_request, id_ranges, impulse_request, parse_request,
+                                request_id_of, spawn_request, step_count, teleport_request)
+from ..physics.validation import SceneError
+from ..physics.world import NonFiniteStateError
+from .qos import COMMAND_QOS, EVENTS_QOS
+
+MAX_REASON = 400             # characters of a refusal reason in an answer
+
+
+class CommandInterface:
+    """Subscriptions and services of the node's commands, and its answers on ``events``."""
+
+    def __init__(self, node: Any) -> None:
+        """Create ``events`` and every command subscription and service on ``node``.
+
+        ``node`` is the :class:`~collision_node.ros.node.CollisionNode` (typed
+        Any: node.py imports this module and the package keeps no import circle).
+        """
+        self.node = node
+        self.seq = 0
+        self.pub_events = node.create_publisher(String, 'events', EVENTS_QOS)
+        handlers: dict[str, Callable[[Any], dict]] = {
+            'spawn': self._spawn, 'delete': self._delete, 'teleport': self._teleport,
+            'impulse': self._impulse, 'step': self._step}
+        for name, handler in handlers.items():
+            node.create_subscription(
+                String, name,
+                lambda msg, name=name, handler=handler: self.handle(name, msg.data, handler),
+                COMMAND_QOS)
+        node.create_subscription(Empty, 'reset', self._on_reset_topic, COMMAND_QOS)
+        node.create_service(Trigger, 'reset', self._on_reset_service)
+        node.create_service(SetBool, 'pause', self._on_pause_service)
+
+    # -- answers ------------------------------------------------------------
+
+    def answer(self, request: str, request_id: Any, accepted: bool, **fields: Any) -> None:
+        """Publish one answer on ``events``."""
+        self.seq += 1
+        event = {'seq': self.seq, 'request': request, 'request_id': request_id,
+                 'accepted': accepted, **fields, 'particles': len(self.node.world.state)}
+        self.pub_events.publish(String(data=json.dumps(event)))
+
+    def handle(self, request: str, text: str, handler: Callable[[Any], dict]) -> None:
+        """Parse a command's text, run it, and answer once (accepted or with the reason)."""
+        request_id = None
+        try:
+            data = parse_request(text, request)
+            request_id = request_id_of(data, request)
+            fields = handler(data)
+        except SceneError as error:
+            reason = str(error)
+        except Exception as error:  # noqa: B902 - a bad request must never stop the node
+            reason = f'{request}: {type(error).__name__}: {error}'
+        else:
+            self.answer(request, request_id, True, **fields)
+            return
+        reason = ' '.join(reason.split())
+        if len(reason) > MAX_REASON:
+            reason = reason[:MAX_REASON] + '...'
+        self.node.get_logger().warning(f'rejected {reason}')
+        self.answer(request, request_id, False, reason=reason)
+
+    # -- commands -------------------------------------------------------------
+
+    def _spawn(self, data: Any) -> dict:
+        """Spawn particles; answer their ids."""
+        ids = spawn_request(self.node.world, data)
+        self.node.get_logger().info(f'spawned {ids.size} particles (ids {ids[0]}..{ids[-1]})'
+                                    if ids.size else 'spawn request held no particles')
+        return {'ids': id_ranges(ids)}
+
+    def _delete(self, data: Any) -> dict:
+        """Delete particles; answer the deleted ids."""
+        ids = delete_request(self.node.world, data)
+        self.node.get_logger().info(f'deleted {ids.size} particles')
+        return {'ids': id_ranges(ids)}
+
+    def _teleport(self, data: Any) -> dict:
+        """Set a particle's position and/or velocity."""
+        pid = teleport_request(self.node.world, data)
+        return self._particle(pid)
+
+    def _impulse(self, data: Any) -> dict:
+        """Apply an impulse to a particle."""
+        pid = impulse_request(self.node.world, data)
+        return self._particle(pid)
+
+    def _particle(self, pid: int) -> dict:
+        """Answer fields for one particle: its id, position and velocity now."""
+        world = self.node.world
+        row = int(world.rows([pid])[0])
+        return {'ids': [[pid, pid]], 'position': world.state.position[row].tolist(),
+                'velocity': world.state.velocity[row].tolist()}
+
+    def _step(self, data: Any) -> dict:
+        """Take N steps while paused."""
+        count = step_count(data)
+        node = self.node
+        if not node.paused:
+            raise SceneError('step: the world is running; pause it first (service pause or '
+                             'parameter paused)')
+        if node.failed is not None:
+            raise SceneError(f'step: stepping stopped ({node.failed}); reset to go on')
+        for done in range(count):
+            try:
+                node.world.step(1)
+            except NonFiniteStateError as error:
+                node.failed = str(error)
+                node.get_logger().error(f'stopped stepping: {error}; reset to go on')
+                raise SceneError(f'step: stopped after {done + 1} of {count} steps: '
+                                 f'{error}') from None
+        return {'steps': count, 'time': node.world.time}
+
+    # -- reset and pause --------------------------------------------------------
+
+    def _on_reset_topic(self, msg: Empty) -> None:
+        """Reset on a message on the ``reset`` topic."""
+        self._reset()
+
+    def _on_reset_service(self, request: Trigger.Request,
+                          response: Trigger.Response) -> Trigger.Response:
+        """Reset on a ``reset`` service call and reply."""
+        response.message = self._reset()
+        response.success = True
+        return response
+
+    def _reset(self) -> str:
+        """Reset the world and answer with the ids it holds again."""
+        message = self.node.reset_world()
+        self.answer('reset', None, True, ids=id_ranges(self.node.world.state.ids))
+        return message
+
+    def _on_pause_service(self, request: SetBool.Request,
+                          response: SetBool.Response) -> SetBool.Response:
+        """Pause (data true) or resume through the ``paused`` parameter, and reply."""
+        result = self.node.set_parameters([Parameter('paused', Parameter.Type.BOOL,
+                                                     bool(request.data))])[0]
+        response.success = result.successful
+        response.message = (f'{"paused" if request.data else "running"} at time '
+                            f'{self.node.world.time:g} s' if result.successful
+                            else f'pause: {result.reason}')
+        if result.successful:
+            self.answer('pause', None, True, paused=bool(request.data),
+                        time=self.node.world.time)
+        else:
+            self.answer('pause', None, False, reason=response.message)
+        return response
