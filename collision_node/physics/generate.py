@@ -13,7 +13,7 @@ import numpy as np
 
 from .particles import MAX_COORDINATE, MAX_SPEED, MIN_VALUE, MAX_MASS, MAX_RADIUS
 from .state import ParticleState
-from .validation import (fail, integer, number, reject_unknown_keys, require_mapping,
+from .validation import (fail, integer, number, quote, reject_unknown_keys, require_mapping,
                          vector)
 
 GENERATE_KEYS = ('kind', 'count', 'radius', 'mass', 'speed', 'seed', 'region')
@@ -45,7 +45,7 @@ def parse_generate(spec: Any, where: str, dimensions: int) -> dict:
             fail(f'{where}.{key}', 'missing (required: kind, count, radius, mass, region)')
     if spec['kind'] not in GENERATOR_KINDS:
         fail(f'{where}.kind',
-             f'unknown kind {spec["kind"]!r} (known: {", ".join(GENERATOR_KINDS)})')
+             f'unknown kind {quote(spec["kind"])} (known: {", ".join(GENERATOR_KINDS)})')
     out = {
         'kind': spec['kind'],
         'count': integer(spec['count'], f'{where}.count', minimum=1),
