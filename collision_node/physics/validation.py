@@ -57,13 +57,6 @@ def quote(value: Any) -> str:
     return one_line(_short.repr(value), MAX_QUOTE)
 
 
-def name_of(key: Any) -> str:
-    """Return a mapping key for a field path: itself if it looks like a name."""
-    if isinstance(key, str) and _NAME.fullmatch(key):
-        return key
-    return f'<key {quote(key)}>'
-
-
 class SceneError(ValueError):
     """A scene, spawn request or API argument that cannot be accepted.
 
@@ -97,9 +90,14 @@ def reject_unknown_keys(data: Mapping, allowed: Iterable[str], where: str, *,
     """
     allowed = list(allowed)
     for key in data:
-        if key not in allowed:
-            fail(f'{where}{separator}{name_of(key)}' if where else name_of(key),
+        if key in allowed:
+            continue
+        if isinstance(key, str) and _NAME.fullmatch(key):
+            fail(f'{where}{separator}{key}' if where else key,
                  f'unknown key (allowed: {", ".join(allowed)})')
+        # Not even a field name (a line of some other file, a number...):
+        # say so without echoing it, it may be anything.
+        fail(where or 'input', f'a key that is not a field name (allowed: {", ".join(allowed)})')
 
 
 class OverflowedNumber(float):
