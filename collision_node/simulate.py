@@ -93,7 +93,9 @@ def run(world: World, steps: int, show_progress: bool = True,
     there (a step is never cut in half).
     """
     start = time.perf_counter()
-    chunk = max(1, steps // 200)
+    # The bar is fed in small chunks so it shows up (after its delay) even
+    # on runs of millions of steps.
+    chunk = max(1, min(steps // 200, 64))
     with tqdm(total=steps, unit='step', delay=PROGRESS_DELAY_S, file=sys.stderr,
               disable=not show_progress, leave=False) as bar:
         for done in range(steps):
