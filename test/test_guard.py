@@ -280,3 +280,11 @@ def test_every_reason_is_bounded_even_with_a_long_source():
     with pytest.raises(SceneError) as caught:
         parse_spawn('{position: [0, 0, 0], radius: -1, mass: 1}', 3, 0, source='s' * 5000)
     assert len(str(caught.value)) <= 300
+
+
+@pytest.mark.parametrize('name', ['n' * 101, 'two\nlines', 'bell\a'])
+def test_scene_name_is_a_short_printable_line(name):
+    with pytest.raises(SceneError) as caught:
+        parse_scene({'name': name, 'particles': GOOD}, 'api')
+    assert_short_reason(caught.value, 'api: name: expected at most 100 printable characters')
+    assert parse_scene({'name': 'n' * 100, 'particles': GOOD}, 'api').name == 'n' * 100

@@ -26,6 +26,7 @@ SCENE_KEYS = ('name', 'dimensions', 'dt', 'duration', 'accuracy', 'effects', 'pa
 DEFAULT_DT = 1.0 / 240.0
 DEFAULT_DURATION = 1.0
 MAX_DT = 1.0
+MAX_NAME = 100
 
 
 # The loader moved to the guard (libyaml, bounded); the old names still work.
@@ -114,6 +115,10 @@ def parse_scene(data: Any, source: str, default_name: str = 'scene') -> Scene:
     name = data.get('name', default_name)
     if not isinstance(name, str) or not name:
         fail(f'{source}: name', f'expected a non-empty string, got {quote(name)}')
+    if len(name) > MAX_NAME or not name.isprintable():
+        # The name goes into every summary, log line and status message.
+        fail(f'{source}: name', f'expected at most {MAX_NAME} printable characters on one '
+                                f'line, got {quote(name)}')
     dimensions = data.get('dimensions', 3)
     if dimensions not in (2, 3) or isinstance(dimensions, bool):
         fail(f'{source}: dimensions', f'must be 2 or 3, got {quote(dimensions)}')
