@@ -2,7 +2,10 @@
 
 Runs a scene without ROS, prints a short summary, and writes the final
 state and statistics as JSON. A bad scene or argument exits with code 2
-and one line on stderr.
+and one line on stderr, before any step is taken (``--out`` included).
+Ctrl-C (SIGINT) or SIGTERM stops the run at a step boundary: the summary
+and the JSON of the state reached (``"interrupted": true``) are still
+written, and the exit code is 130.
 """
 
 from __future__ import annotations
@@ -10,9 +13,11 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import signal
 import sys
 import time
-from typing import Optional, Sequence
+from pathlib import Path
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 from tqdm import tqdm
@@ -25,6 +30,10 @@ from .physics.world import NonFiniteStateError, World
 # Runs shorter than this never show a progress bar.
 PROGRESS_DELAY_S = 2.0
 EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130
+# More steps than this is a typo or an overflow (1e9 steps of a single
+# particle already take hours), refused before the run.
+MAX_STEPS = 10 ** 9
 
 
 class UsageError(Exception):
@@ -76,23 +85,105 @@ def particle_records(world: World) -> list[dict]:
     return records
 
 
-def run(world: World, steps: int, show_progress: bool = True) -> float:
-    """Step ``world`` ``steps`` times; return the wall-clock seconds it took."""
+def run(world: World, steps: int, show_progress: bool = True,
+        stop: Optional[Callable[[], bool]] = None) -> float:
+    """Step ``world`` ``steps`` times; return the wall-clock seconds it took.
+
+    ``stop`` is asked before every step; when it answers true the run ends
+    there (a step is never cut in half).
+    """
     start = time.perf_counter()
-    chunk = max(1, steps // 200)
+    # The bar is fed in small chunks so it shows up (after its delay) even
+    # on runs of millions of steps.
+    chunk = max(1, min(steps // 200, 64))
     with tqdm(total=steps, unit='step', delay=PROGRESS_DELAY_S, file=sys.stderr,
               disable=not show_progress, leave=False) as bar:
-        done = 0
-        while done < steps:
-            k = min(chunk, steps - done)
-            world.step(k)
-            done += k
-            bar.update(k)
+        for done in range(steps):
+            if stop is not None and stop():
+                break
+            world.step()
+            if (done + 1) % chunk == 0:
+                bar.update(chunk)
     return time.perf_counter() - start
+
+
+def check_out(out: str) -> None:
+    """Refuse an ``--out`` target that cannot be written, before any step is run.
+
+    A device that fails only when written to (``/dev/full``) can only be
+    found at the end; :func:`main` reports that after the summary.
+    """
+    if out == '':
+        raise UsageError('--out: empty file name')
+    path = Path(out)
+    if path.is_dir():
+        raise UsageError(f'--out {out}: Is a directory')
+    parent = path.parent
+    if not parent.is_dir():
+        raise UsageError(f'--out {out}: No such file or directory ({parent} is not a '
+                         'directory)')
+    # Try it rather than ask os.access (which says yes to root everywhere):
+    # append to an existing file (no truncation), or create and remove.
+    existed = path.exists()
+    try:
+        with open(path, 'a', encoding='utf-8'):
+            pass
+        if not existed:
+            path.unlink()
+    except OSError as error:
+        raise UsageError(f'--out {out}: {error.strerror}') from None
+
+
+def steps_to_run(args: argparse.Namespace, duration: float, dt: float) -> int:
+    """Return the number of steps asked for, refusing absurd ones."""
+    if args.steps is not None:
+        if args.steps > MAX_STEPS:
+            raise UsageError(f'--steps must be <= {MAX_STEPS}, got {args.steps}')
+        return args.steps
+    source = 'scene duration' if args.duration is None else '--duration'
+    steps = duration / dt
+    if not steps <= MAX_STEPS:
+        raise UsageError(f'{source} {duration:g} s is {steps:.3g} steps of dt = {dt:g} s, '
+                         f'over the limit of {MAX_STEPS}')
+    return int(round(steps))
+
+
+class _StopRequest:
+    """Turns SIGINT and SIGTERM into a flag the run checks between steps."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.signal: Optional[int] = None
+        self._previous: dict[int, Any] = {}
+
+    def __enter__(self) -> '_StopRequest':
+        for number in self.SIGNALS:
+            self._previous[number] = signal.signal(number, self._handle)
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        for number, handler in self._previous.items():
+            signal.signal(number, handler)
+
+    def _handle(self, number: int, frame: Any) -> None:
+        self.signal = number
+
+    def __call__(self) -> bool:
+        return self.signal is not None
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Run the runner; return the process exit code."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        # Ctrl-C while the scene loads: nothing has run, nothing to keep.
+        print('simulate: interrupted before the run started', file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def _main(argv: Optional[Sequence[str]]) -> int:
     try:
         args = build_parser().parse_args(argv)
         if args.steps is not None and args.steps < 0:
@@ -100,10 +191,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if args.duration is not None and not (math.isfinite(args.duration)
                                               and args.duration >= 0):
             raise UsageError(f'--duration must be a finite number >= 0, got {args.duration}')
+        if args.out is not None:
+            check_out(args.out)
         scene = load_scene(args.scene)
         if args.accuracy is not None:
             scene = scene.with_accuracy(parse_accuracy_text(args.accuracy, scene.effects,
                                                             '--accuracy'))
+        duration = scene.duration if args.duration is None else args.duration
+        steps = steps_to_run(args, duration, scene.dt)
         world = World(scene)
     except (UsageError, SceneError) as error:
         print(f'simulate: error: {error}', file=sys.stderr)
@@ -111,63 +206,81 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if args.explain:
         print(world.explain())
         return 0
-    duration = scene.duration if args.duration is None else args.duration
-    steps = args.steps if args.steps is not None else int(round(duration / scene.dt))
-    energy_start, momentum_start = world.kinetic_energy(), world.momentum()
-    balance_start = world.energy()
-    try:
-        wall_seconds = run(world, steps)
-    except NonFiniteStateError as error:
-        print(f'simulate: error: {scene.name}: {error}', file=sys.stderr)
-        return 1
-    energy_end, momentum_end = world.kinetic_energy(), world.momentum()
-    balance_end = world.energy()
-    result = {
-        'scene': scene.name,
+    start = {'kinetic': world.kinetic_energy(), 'momentum': world.momentum(),
+             'energy': world.energy()}
+    # The handlers stay until the JSON is written: a second Ctrl-C must not
+    # lose what the first one kept.
+    with _StopRequest() as stop:
+        try:
+            wall_seconds = run(world, steps, stop=stop)
+        except NonFiniteStateError as error:
+            print(f'simulate: error: {scene.name}: {error}', file=sys.stderr)
+            return 1
+        result = build_result(world, start, wall_seconds)
+        if stop.signal is not None:
+            result['interrupted'] = True
+            result['steps_requested'] = steps
+        if not args.quiet:
+            if stop.signal is not None:
+                print(f'interrupted by {signal.Signals(stop.signal).name} after {world.steps} '
+                      f'of {steps} steps')
+            print_summary(world, result)
+            sys.stdout.flush()
+        if args.out is not None:
+            try:
+                with open(args.out, 'w', encoding='utf-8') as handle:
+                    json.dump(result, handle, indent=1)
+            except OSError as error:
+                # Checked before the run; a full disk or /dev/full shows only now.
+                print(f'simulate: error: --out {args.out}: {error.strerror}', file=sys.stderr)
+                return EXIT_BAD_INPUT
+        return EXIT_INTERRUPTED if stop.signal is not None else 0
+
+
+def build_result(world: World, start: dict, wall_seconds: float) -> dict:
+    """Return the JSON document of a run that started from ``start``."""
+    return {
+        'scene': world.scene.name,
         'time': world.time,
         'steps': world.steps,
         'particles': particle_records(world),
         'stats': {
             'collisions': world.stats.collisions,
             'wall_collisions': world.stats.wall_collisions,
-            'kinetic_energy': [energy_start, energy_end],
-            'momentum': [momentum_start.tolist(), momentum_end.tolist()],
+            'kinetic_energy': [start['kinetic'], world.kinetic_energy()],
+            'momentum': [start['momentum'].tolist(), world.momentum().tolist()],
             'dissipated': dict(world.stats.dissipated),
-            'energy': {'start': balance_start, 'end': balance_end},
+            'energy': {'start': start['energy'], 'end': world.energy()},
             'max_penetration': world.stats.max_penetration,
             'fallback_steps': world.stats.fallback_steps,
             'wall_seconds': wall_seconds,
         },
     }
-    if args.out:
-        try:
-            with open(args.out, 'w', encoding='utf-8') as handle:
-                json.dump(result, handle, indent=1)
-        except OSError as error:
-            print(f'simulate: error: --out {args.out}: {error.strerror}', file=sys.stderr)
-            return EXIT_BAD_INPUT
-    if not args.quiet:
-        d_energy = energy_end - energy_start
-        d_momentum = float(np.linalg.norm(momentum_end - momentum_start))
-        print(f'{scene.name}: {len(world.state)} particles, {world.steps} steps '
-              f'({world.time:g} s simulated) in {wall_seconds:.3f} s wall')
-        print(f'collisions: {world.stats.collisions} particle, '
-              f'{world.stats.wall_collisions} wall')
-        print(f'kinetic energy: {energy_start:.12g} -> {energy_end:.12g} J '
-              f'(change {d_energy:+.3g} J)')
-        if balance_end['dissipated'] or balance_end['potential']:
-            removed = ', '.join(f'{name} {value:.6g}'
-                                for name, value in balance_end['dissipated'].items())
-            print(f'energy (kinetic + potential): {balance_start["total"]:.12g} -> '
-                  f'{balance_end["total"]:.12g} J; removed by effects: {removed or "none"} J; '
-                  f'balance error {balance_end["balance_error"]:.3g} J')
-        print(f'momentum change: {d_momentum:.3g} kg m/s; '
-              f'max penetration: {world.stats.max_penetration:.3g} m')
-        if world.stats.fallback_steps:
-            print(f'event mode: {world.stats.fallback_steps} of {world.steps} steps met resting '
-                  'contact under gravity or passed the event budget and were solved by the '
-                  'step fallback')
-    return 0
+
+
+def print_summary(world: World, result: dict) -> None:
+    """Print the run's summary lines from its JSON document."""
+    stats = result['stats']
+    energy_start, energy_end = stats['kinetic_energy']
+    balance_start, balance_end = stats['energy']['start'], stats['energy']['end']
+    d_momentum = float(np.linalg.norm(np.subtract(*stats['momentum'][::-1])))
+    print(f'{result["scene"]}: {len(world.state)} particles, {world.steps} steps '
+          f'({world.time:g} s simulated) in {stats["wall_seconds"]:.3f} s wall')
+    print(f'collisions: {stats["collisions"]} particle, {stats["wall_collisions"]} wall')
+    print(f'kinetic energy: {energy_start:.12g} -> {energy_end:.12g} J '
+          f'(change {energy_end - energy_start:+.3g} J)')
+    if balance_end['dissipated'] or balance_end['potential']:
+        removed = ', '.join(f'{name} {value:.6g}'
+                            for name, value in balance_end['dissipated'].items())
+        print(f'energy (kinetic + potential): {balance_start["total"]:.12g} -> '
+              f'{balance_end["total"]:.12g} J; removed by effects: {removed or "none"} J; '
+              f'balance error {balance_end["balance_error"]:.3g} J')
+    print(f'momentum change: {d_momentum:.3g} kg m/s; '
+          f'max penetration: {stats["max_penetration"]:.3g} m')
+    if stats['fallback_steps']:
+        print(f'event mode: {stats["fallback_steps"]} of {world.steps} steps met resting '
+              'contact under gravity or passed the event budget and were solved by the '
+              'step fallback')
 
 
 if __name__ == '__main__':

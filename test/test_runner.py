@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import json
 import os
+import select
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -119,3 +122,107 @@ def test_non_finite_state_is_refused(world_from):
     world.state.velocity[0, 0] = np.nan
     with pytest.raises(FloatingPointError, match='non-finite'):
         world.step()
+
+
+@pytest.mark.parametrize('out, says', [
+    ('', '--out: empty file name'),
+    ('TMP', 'Is a directory'),
+    ('/nonexistent-dir/deeper/x.json', 'No such file or directory'),
+    ('/proc/x.json', '--out /proc/x.json: '),
+])
+def test_bad_out_is_refused_before_the_run(tmp_path, out, says):
+    """The run (14 s of gas_10k) never starts: no summary, nothing to lose."""
+    done = run_cli('gas_10k', '--steps', '2000', '--out', out.replace('TMP', str(tmp_path)))
+    assert done.returncode == 2
+    lines = done.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith('simulate: error: --out') and says in lines[0]
+    assert done.stdout == ''                     # the summary comes after the run: none ran
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_out_that_fails_at_write_still_prints_the_summary():
+    done = run_cli('oblique_pair', '--steps', '5', '--out', '/dev/full')
+    assert done.returncode == 2
+    assert 'oblique_pair: 2 particles, 5 steps' in done.stdout
+    assert done.stderr.splitlines() == [
+        'simulate: error: --out /dev/full: No space left on device']
+
+
+@pytest.mark.parametrize('args, says', [
+    (('--duration', '1e308'), '--duration 1e+308 s is inf steps of dt = 0.001 s, over'),
+    (('--duration', '1e7'), '--duration 1e+07 s is 1e+10 steps of dt = 0.001 s, over'),
+    (('--steps', str(10 ** 30)), '--steps must be <= 1000000000, got 1' + '0' * 30),
+])
+def test_absurd_run_lengths_are_refused(args, says):
+    done = run_cli('oblique_pair', *args)
+    assert done.returncode == 2 and done.stdout == ''
+    lines = done.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f'simulate: error: {says}')
+
+
+@pytest.mark.parametrize('content, says', [
+    ('[' * 5000, 'nested deeper than 32 levels (line 1, column 33)'),
+    ('root:x:0:0:root:/root:/bin/bash\n', 'expected a mapping, got str'),
+    ('root:$6$salt$hash:19000:0:99999:7:::\n', 'a key that is not a field name'),
+    (b'\x7fELF\x02\x01root\xff', 'cannot read: not UTF-8 text (byte 10)'),
+])
+def test_scene_file_that_is_not_a_scene_is_one_line_without_its_content(
+        tmp_path, content, says):
+    path = tmp_path / 'scene.yaml'
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    else:
+        path.write_text(content)
+    done = run_cli(str(path))
+    assert done.returncode == 2 and done.stdout == ''
+    lines = done.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f'simulate: error: {path}: ')
+    assert says in lines[0]
+    assert 'root' not in lines[0][len(f'simulate: error: {path}'):]
+
+
+def wait_for_output(process: subprocess.Popen, word: bytes, timeout: float = 60.0) -> bytes:
+    """Read the process's stderr until ``word`` appears; fail after ``timeout``."""
+    seen = b''
+    deadline = time.monotonic() + timeout
+    while word not in seen:
+        left = deadline - time.monotonic()
+        assert left > 0, f'no {word!r} on stderr within {timeout} s: {seen[-300:]!r}'
+        ready, _, _ = select.select([process.stderr], [], [], left)
+        if ready:
+            chunk = os.read(process.stderr.fileno(), 4096)
+            assert chunk, f'stderr closed before {word!r}: {seen[-300:]!r}'
+            seen += chunk
+    return seen
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
+def test_signal_stops_the_run_and_keeps_the_work(tmp_path, sig):
+    """A run of 10**8 steps, stopped once its progress bar shows: summary, JSON, 130."""
+    out = tmp_path / 'partial.json'
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get('PYTHONPATH', ''))
+    process = subprocess.Popen(
+        [sys.executable, '-m', 'collision_node.simulate', 'oblique_pair', '--steps',
+         str(10 ** 8), '--out', str(out)],
+        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        wait_for_output(process, b'step/s')         # the progress bar: stepping has begun
+        process.send_signal(sig)
+        stdout, stderr = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    assert process.returncode == 130, stderr
+    assert b'Traceback' not in stderr and b'simulate: error' not in stderr
+    result = json.loads(out.read_text())
+    assert result['interrupted'] is True and result['steps_requested'] == 10 ** 8
+    assert 0 < result['steps'] < 10 ** 8
+    assert result['time'] == pytest.approx(result['steps'] * 0.001, rel=1e-12)
+    lines = stdout.decode().splitlines()
+    assert lines[0] == (f'interrupted by {signal.Signals(sig).name} after {result["steps"]} '
+                        f'of {10 ** 8} steps')
+    assert lines[1].startswith(f'oblique_pair: 2 particles, {result["steps"]} steps')
+    # The state reached is a real one: the pair still carries its momentum and energy.
+    assert result['stats']['kinetic_energy'][1] == pytest.approx(
+        result['stats']['kinetic_energy'][0], rel=1e-9)

@@ -72,9 +72,9 @@ from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
-import yaml
 
-from .validation import fail, integer, number, reject_unknown_keys
+from .guard import parse_text
+from .validation import fail, integer, number, quote, reject_unknown_keys
 
 MODES = ('step', 'event')
 ORDERINGS = ('sequential', 'batched')
@@ -116,10 +116,10 @@ def parse_accuracy(value: Any, where: str) -> AccuracySettings:
         return PRESETS[DEFAULT_PRESET]
     if isinstance(value, str):
         if value not in PRESETS:
-            fail(where, f'unknown preset {value!r} (known: {", ".join(PRESETS)})')
+            fail(where, f'unknown preset {quote(value)} (known: {", ".join(PRESETS)})')
         return PRESETS[value]
     if not isinstance(value, dict):
-        fail(where, f'expected a preset name or a mapping, got {value!r}')
+        fail(where, f'expected a preset name or a mapping, got {quote(value)}')
     names = [f.name for f in fields(AccuracySettings)]
     reject_unknown_keys(value, ['preset'] + names, where)
     base = parse_accuracy(value.get('preset', DEFAULT_PRESET), f'{where}.preset')
@@ -131,12 +131,12 @@ def parse_accuracy(value: Any, where: str) -> AccuracySettings:
         if key in value:
             if value[key] not in known:
                 fail(f'{where}.{key}',
-                     f'unknown {key} {value[key]!r} (known: {", ".join(known)})')
+                     f'unknown {key} {quote(value[key])} (known: {", ".join(known)})')
             changes[key] = value[key]
     for key in ('ccd', 'requery'):
         if key in value:
             if not isinstance(value[key], bool):
-                fail(f'{where}.{key}', f'expected true or false, got {value[key]!r}')
+                fail(f'{where}.{key}', f'expected true or false, got {quote(value[key])}')
             changes[key] = value[key]
     if 'collapse_time' in value:
         changes['collapse_time'] = number(value['collapse_time'], f'{where}.collapse_time',
@@ -150,10 +150,7 @@ def parse_accuracy_text(text: str, effects: Any, where: str) -> AccuracySettings
     The result is checked against the scene's ``effects`` (event mode
     refuses what it cannot do exactly).
     """
-    try:
-        value = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        fail(where, f'not valid YAML or JSON: {" ".join(str(error).split())}')
+    value = parse_text(text, where)
     accuracy = parse_accuracy(value, where)
     check_event_mode(accuracy, effects, where)
     return accuracy

@@ -37,7 +37,7 @@ from typing import Any, Optional
 import numpy as np
 
 from .particles import MAX_COORDINATE
-from .validation import fail, number, reject_unknown_keys, require_mapping, vector
+from .validation import fail, number, quote, reject_unknown_keys, require_mapping, vector
 
 EFFECT_KEYS = ('gravity', 'walls', 'restitution', 'restitution_threshold', 'friction', 'drag')
 MAX_THRESHOLD = 1.0e6      # m/s
@@ -136,7 +136,7 @@ def combine(own_i: Optional[np.ndarray], own_j: Optional[np.ndarray], default):
 def _parse_plane_bounds(spec: Any, where: str, dimensions: int) -> np.ndarray:
     """Validate a ``min``/``max`` list whose components may be null (open side)."""
     if not isinstance(spec, (list, tuple)):
-        fail(where, f'expected a list of {dimensions} numbers or nulls, got {spec!r}')
+        fail(where, f'expected a list of {dimensions} numbers or nulls, got {quote(spec)}')
     values = [0.0 if c is None else c for c in spec]
     out = vector(values, where, dimensions, max_abs=MAX_COORDINATE)
     for k, c in enumerate(spec):

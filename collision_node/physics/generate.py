@@ -7,18 +7,21 @@ directions at a fixed speed, reproducibly from ``seed``.
 
 from __future__ import annotations
 
+import math
 from typing import Any, Mapping
 
 import numpy as np
 
 from .particles import MAX_COORDINATE, MAX_SPEED, MIN_VALUE, MAX_MASS, MAX_RADIUS
 from .state import ParticleState
-from .validation import (fail, integer, number, reject_unknown_keys, require_mapping,
+from .validation import (fail, integer, number, quote, reject_unknown_keys, require_mapping,
                          vector)
 
 GENERATE_KEYS = ('kind', 'count', 'radius', 'mass', 'speed', 'seed', 'region')
 GENERATOR_KINDS = ('gas',)
 MAX_GENERATED = 10_000_000
+# Lattice cells are numbered in int64; stay well inside it.
+MAX_LATTICE_CELLS = 2 ** 62
 
 
 def parse_region(value: Any, where: str, dimensions: int) -> tuple[np.ndarray, np.ndarray]:
@@ -45,7 +48,7 @@ def parse_generate(spec: Any, where: str, dimensions: int) -> dict:
             fail(f'{where}.{key}', 'missing (required: kind, count, radius, mass, region)')
     if spec['kind'] not in GENERATOR_KINDS:
         fail(f'{where}.kind',
-             f'unknown kind {spec["kind"]!r} (known: {", ".join(GENERATOR_KINDS)})')
+             f'unknown kind {quote(spec["kind"])} (known: {", ".join(GENERATOR_KINDS)})')
     out = {
         'kind': spec['kind'],
         'count': integer(spec['count'], f'{where}.count', minimum=1),
@@ -61,8 +64,15 @@ def parse_generate(spec: Any, where: str, dimensions: int) -> dict:
         fail(f'{where}.count', f'must be <= {MAX_GENERATED}, got {out["count"]}')
     low, high = out['region']
     spacing = 2.0 * out['radius'] * 1.05
-    cells = np.floor((high - low)[:dimensions] / spacing).astype(np.int64)
-    capacity = int(np.prod(cells)) if np.all(cells > 0) else 0
+    # Count the lattice in Python floats: a tiny radius in a wide region
+    # makes more cells than int64 holds (numpy would wrap around silently).
+    per_axis = [math.floor(float(high[axis] - low[axis]) / spacing) for axis in range(dimensions)]
+    lattice = math.prod(float(cells) for cells in per_axis)
+    if lattice > MAX_LATTICE_CELLS:
+        fail(where, f'radius {out["radius"]:g} m makes {lattice:.3g} lattice cells in the '
+                    f'region, over the {MAX_LATTICE_CELLS:.3g} a generator can index '
+                    '(use a larger radius or a smaller region)')
+    capacity = int(lattice)
     if capacity < out['count']:
         fail(where, f'{out["count"]} particles of radius {out["radius"]:g} do not fit the region '
                     f'(room for {capacity} without overlap)')

@@ -8,60 +8,34 @@ source, the particle index and the field.
 
 from __future__ import annotations
 
-import json
-import math
-import re
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional, Union
-
-import yaml
 
 from .accuracy import AccuracySettings, check_event_mode, check_event_particles, parse_accuracy
 from .effects import Effects, check_particles_for_effects, parse_effects
 from .generate import generate_state, parse_generate
 from .particles import PARTICLE_KEYS, build_state, parse_particle
 from .state import ParticleState
-from .validation import (OverflowedNumber, SceneError, fail, number, reject_unknown_keys,
-                         require_mapping)
+from .guard import GuardedLoader, parse_text, read_text_file
+from .validation import SceneError, fail, number, quote, reject_unknown_keys, require_mapping
 
 SCENE_KEYS = ('name', 'dimensions', 'dt', 'duration', 'accuracy', 'effects', 'particles',
               'generate')
 DEFAULT_DT = 1.0 / 240.0
 DEFAULT_DURATION = 1.0
 MAX_DT = 1.0
+MAX_NAME = 100
 
 
-class SceneLoader(yaml.SafeLoader):
-    """PyYAML's safe loader, reading numbers such as 1e3 and 1.0e13 as floats.
-
-    PyYAML follows YAML 1.1, where an exponent needs a sign and a mantissa
-    a dot, so ``mass: 1e3`` would be the string '1e3'. Scene authors write
-    SCI notation as in YAML 1.2 and JSON; this resolver accepts it.
-    """
+# The loader moved to the guard (libyaml, bounded); the old names still work.
+SceneLoader = GuardedLoader
 
 
-SceneLoader.add_implicit_resolver(
-    'tag:yaml.org,2002:float',
-    re.compile(r'^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$'),
-    list('-+0123456789.'))
-
-
-def _construct_float(loader: SceneLoader, node: yaml.ScalarNode) -> float:
-    """Read a float; a numeral that overflows to inf is not ``.inf``: mark it."""
-    value = loader.construct_yaml_float(node)
-    if math.isinf(value) and 'inf' not in node.value.lower():
-        return OverflowedNumber(node.value)
-    return value
-
-
-SceneLoader.add_constructor('tag:yaml.org,2002:float', _construct_float)
-
-
-def load_yaml(text: str):
-    """Parse YAML (or JSON) text with :class:`SceneLoader`."""
-    return yaml.load(text, Loader=SceneLoader)  # noqa: S506 (a SafeLoader subclass)
+def load_yaml(text: str, source: str = 'text') -> Any:
+    """Parse YAML (or JSON) text through the guard (size, depth, aliases)."""
+    return parse_text(text, source)
 
 
 @dataclass(frozen=True)
@@ -125,20 +99,13 @@ def resolve_scene_path(path_or_name: Union[str, Path]) -> Path:
 def load_scene(path_or_name: Union[str, Path]) -> Scene:
     """Read and validate a scene file (or a shipped scene by name)."""
     path = resolve_scene_path(path_or_name)
-    try:
-        text = path.read_text(encoding='utf-8')
-    except (OSError, UnicodeDecodeError) as error:
-        raise SceneError(f'{path}: cannot read: {error}') from None
+    text = read_text_file(path, str(path))
     return parse_scene_text(text, str(path), default_name=path.stem)
 
 
 def parse_scene_text(text: str, source: str, default_name: str = 'scene') -> Scene:
     """Parse YAML (or JSON, a subset of YAML) text into a scene."""
-    try:
-        data = load_yaml(text)
-    except yaml.YAMLError as error:
-        raise SceneError(f'{source}: not valid YAML: {_one_line(error)}') from None
-    return parse_scene(data, source, default_name)
+    return parse_scene(parse_text(text, source, 'YAML'), source, default_name)
 
 
 def parse_scene(data: Any, source: str, default_name: str = 'scene') -> Scene:
@@ -147,10 +114,14 @@ def parse_scene(data: Any, source: str, default_name: str = 'scene') -> Scene:
     reject_unknown_keys(data, SCENE_KEYS, source, separator=': ')
     name = data.get('name', default_name)
     if not isinstance(name, str) or not name:
-        fail(f'{source}: name', f'expected a non-empty string, got {name!r}')
+        fail(f'{source}: name', f'expected a non-empty string, got {quote(name)}')
+    if len(name) > MAX_NAME or not name.isprintable():
+        # The name goes into every summary, log line and status message.
+        fail(f'{source}: name', f'expected at most {MAX_NAME} printable characters on one '
+                                f'line, got {quote(name)}')
     dimensions = data.get('dimensions', 3)
     if dimensions not in (2, 3) or isinstance(dimensions, bool):
-        fail(f'{source}: dimensions', f'must be 2 or 3, got {dimensions!r}')
+        fail(f'{source}: dimensions', f'must be 2 or 3, got {quote(dimensions)}')
     dt = number(data.get('dt', DEFAULT_DT), f'{source}: dt', minimum=0.0,
                 exclusive_minimum=True, maximum=MAX_DT)
     duration = number(data.get('duration', DEFAULT_DURATION), f'{source}: duration',
@@ -201,31 +172,11 @@ def parse_request(text: str, source: str) -> Any:
     """Parse a request's text (YAML or JSON) into plain data: every command goes through here.
 
     Spawn, delete, teleport, impulse and step requests all use this one
-    function, so every text a user sends meets the same parser and the same
-    one-line error. Text that is valid JSON is read by the JSON parser (a
-    YAML subset, 50x faster than PyYAML's pure-Python one, which matters for
-    bursts of thousands of requests); anything else goes to the YAML loader.
+    function, so every text a user sends meets the same bounded gate
+    (:func:`guard.parse_text`: size, depth, aliases; JSON through the C
+    parser first, then libyaml) and the same one-line errors.
     """
-    if text[:1] in ('{', '['):
-        try:
-            return json.loads(text, parse_float=_json_float, parse_constant=_no_constant)
-        except ValueError:
-            pass            # not strict JSON (or NaN/Infinity): YAML decides
-    try:
-        return load_yaml(text)
-    except yaml.YAMLError as error:
-        raise SceneError(f'{source}: not valid YAML or JSON: {_one_line(error)}') from None
-
-
-def _json_float(text: str) -> float:
-    """Read a JSON number like the YAML loader: one that overflows is marked, not inf."""
-    value = float(text)
-    return OverflowedNumber(text) if math.isinf(value) else value
-
-
-def _no_constant(name: str) -> None:
-    """Refuse JSON's NaN and Infinity extensions, so YAML reads them as it always did."""
-    raise ValueError(name)
+    return parse_text(text, source, 'YAML or JSON')
 
 
 def parse_spawn(text: str, dimensions: int, first_id: int, source: str = 'spawn',
@@ -255,11 +206,6 @@ def parse_spawn_data(data: Any, dimensions: int, first_id: int, source: str = 's
         return parse_particle_section(data.get('particles'), data.get('generate'), source,
                                       dimensions, first_id, max_particles)
     return parse_particle_section([data], None, source, dimensions, first_id, max_particles)
-
-
-def _one_line(error: Exception) -> str:
-    """Collapse a multi-line parser message into one line."""
-    return ' '.join(str(error).split())
 
 
 __all__ = ['Scene', 'SceneError', 'load_scene', 'parse_request', 'parse_scene',
