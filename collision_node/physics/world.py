@@ -46,7 +46,11 @@ class World:
         self.steps = 0
         self.stats = StepStats()
         self.pipeline = build_pipeline(self.scene.effects, self.scene.accuracy)
-        self.energy_start = energy.mechanical(self.state, self.scene.effects.gravity)
+        # Potential energy is measured from the grid point nearest the scene's
+        # initial centre of mass (the origin for a scene near it; see
+        # ``energy``), so it keeps its digits however far from the origin.
+        self.reference = energy.reference_point(self.state)
+        self.energy_start = self._mechanical(self.state)
         self.energy_spawned = 0.0
 
     def _with_spin_state(self, state: ParticleState) -> ParticleState:
@@ -119,8 +123,12 @@ class World:
         first = len(self.state)
         ids = np.arange(first, first + len(particles), dtype=np.int64)
         added = self._with_spin_state(particles.with_arrays(ids=ids))
+        if not self.state.dynamic.any():
+            # No dynamic particle yet, so every potential so far is 0 whatever
+            # the reference: take the newcomers' point, as a scene's start does.
+            self.reference = energy.reference_point(added)
         self.state = self.state.concatenate(added)
-        self.energy_spawned += energy.mechanical(added, self.scene.effects.gravity)
+        self.energy_spawned += self._mechanical(added)
         return ids
 
     def spawn_text(self, text: str, source: str = 'spawn') -> np.ndarray:
@@ -132,6 +140,10 @@ class World:
         """Return the step pipeline, one numbered stage per line."""
         return self.pipeline.explain()
 
+    def _mechanical(self, state: ParticleState) -> float:
+        """Kinetic plus potential energy of ``state`` (potential from the reference), J."""
+        return energy.mechanical(state, self.scene.effects.gravity, reference=self.reference)
+
     def kinetic_energy(self) -> float:
         """Total kinetic energy in joules."""
         return self.state.kinetic_energy()
@@ -140,14 +152,16 @@ class World:
         """Return the energy balance, J, as a JSON-ready mapping.
 
         ``kinetic_linear``, ``kinetic_rotational``, ``potential`` (gravity,
-        zero at the origin) and their ``total`` now; ``start`` (at reset)
+        zero at the reference point: the origin, or for a scene far from it
+        the 2^20 m grid point nearest its initial centre of mass) and
+        their ``total`` now; ``start`` (at reset)
         plus ``spawned`` (brought in by spawns); ``dissipated``, the energy
         each effect removed (a negative entry added energy, e.g.
         'separation' lifting particles under gravity); and
         ``balance_error`` = total + sum(dissipated) - start - spawned, which
         is zero up to rounding.
         """
-        report = energy.breakdown(self.state, self.scene.effects.gravity)
+        report = energy.breakdown(self.state, self.scene.effects.gravity, self.reference)
         dissipated = dict(self.stats.dissipated)
         report.update(start=self.energy_start, spawned=self.energy_spawned,
                       dissipated=dissipated,
