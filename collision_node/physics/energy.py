@@ -2,10 +2,10 @@
 
 Potential energy under uniform gravity g is U = -sum m g . (x - x_ref)
 over the dynamic particles, measured from a reference point x_ref: the
-point of a grid of ``REFERENCE_GRID`` (2^20 m, about 1e6 m) nearest the
-scene's initial centre of mass (``reference_point``). For a scene within
-about 5e5 m of the origin that is the origin itself (U = -sum m g . x, as
-always); a scene 1e9 m away gets a point within 5e5 m of it, exactly
+point of a grid of ``REFERENCE_GRID`` (1024 m) nearest the scene's
+initial centre of mass (``reference_point``). For a scene within 512 m of
+the origin that is the origin itself (U = -sum m g . x, as always); a
+scene 1e9 m away gets a point within 512 m of it, exactly
 representable, so x - x_ref is exact and its potential energies keep
 their digits instead of being 1e10 J totals whose changes are rounding.
 Static particles never move and are left out. Changes of potential
@@ -27,7 +27,7 @@ from .state import ParticleState
 SPHERE_INERTIA = 0.4       # I = 0.4 m r^2 (solid sphere)
 # Spacing of the points potential energy may be measured from, m: a power of
 # two, so every point is exact and x - point is exact near it.
-REFERENCE_GRID = 2.0 ** 20
+REFERENCE_GRID = 1024.0
 
 
 def kinetic_linear(state: ParticleState, index: Optional[np.ndarray] = None) -> float:

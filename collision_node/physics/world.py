@@ -153,7 +153,7 @@ class World:
 
         ``kinetic_linear``, ``kinetic_rotational``, ``potential`` (gravity,
         zero at the reference point: the origin, or for a scene far from it
-        the 2^20 m grid point nearest its initial centre of mass) and
+        the 1024 m grid point nearest its initial centre of mass) and
         their ``total`` now; ``start`` (at reset)
         plus ``spawned`` (brought in by spawns); ``dissipated``, the energy
         each effect removed (a negative entry added energy, e.g.
