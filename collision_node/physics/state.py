@@ -99,13 +99,6 @@ class ParticleState:
         """Return a shallow copy with some arrays replaced."""
         return replace(self, **arrays)
 
-    def kinetic_energy(self) -> float:
-        """Linear plus rotational kinetic energy of the dynamic particles, J."""
-        # One definition of kinetic energy and sphere inertia: ``energy``
-        # (imported here, since it imports this module).
-        from .energy import kinetic_linear, kinetic_rotational
-        return kinetic_linear(self) + kinetic_rotational(self)
-
     def momentum(self) -> np.ndarray:
         """Total linear momentum of the dynamic particles, kg m/s."""
         dyn = self.dynamic

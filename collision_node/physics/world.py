@@ -146,7 +146,7 @@ class World:
 
     def kinetic_energy(self) -> float:
         """Total kinetic energy in joules."""
-        return self.state.kinetic_energy()
+        return energy.kinetic_linear(self.state) + energy.kinetic_rotational(self.state)
 
     def energy(self) -> dict:
         """Return the energy balance, J, as a JSON-ready mapping.
