@@ -80,7 +80,7 @@ MODES = ('step', 'event')
 ORDERINGS = ('sequential', 'batched')
 # Effects the event-driven mode simulates exactly; any other declared
 # effect makes it refuse the scene.
-EVENT_EFFECTS = ('gravity', 'walls', 'restitution')
+EVENT_EFFECTS = ('gravity', 'walls', 'restitution', 'restitution_threshold')
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,8 @@ brings the contact's default: the scene's value for particle-particle
 contacts, the walls' ``restitution`` (or the scene's ``friction``) at a
 wall. So two particles of one material keep its value, a particle with
 0 makes every contact of its own 0, and nothing changes for particles
-that carry no value of their own.
+that carry no value of their own. The rule itself lives in
+``contact_law.combine``, with the rest of the one contact law.
 """
 
 from __future__ import annotations
@@ -114,23 +115,6 @@ class Effects:
     def spin(self) -> bool:
         """Whether particles carry angular velocity and orientation."""
         return self.friction is not None
-
-
-def combine(own_i: Optional[np.ndarray], own_j: Optional[np.ndarray], default):
-    """Geometric-mean combine rule for per-particle coefficients.
-
-    ``own_i``/``own_j`` are the per-contact values of each side (NaN where a
-    particle has none) or None when no particle has one; ``default`` is the
-    contact's value. Returns ``default`` itself when neither side has one.
-    """
-    if own_i is None and own_j is None:
-        return default
-    missing_i = True if own_i is None else np.isnan(own_i)
-    missing_j = True if own_j is None else np.isnan(own_j)
-    a = default if own_i is None else np.where(missing_i, default, own_i)
-    b = default if own_j is None else np.where(missing_j, default, own_j)
-    # Exactly the default (not sqrt(d * d)) where neither side has a value.
-    return np.where(missing_i & missing_j, default, np.sqrt(a * b))
 
 
 def _parse_plane_bounds(spec: Any, where: str, dimensions: int) -> np.ndarray:

@@ -18,9 +18,12 @@ from __future__ import annotations
 
 import numpy as np
 
-# 1 + r^2 m / I for a solid sphere (I = 2/5 m r^2).
-STICK_FACTOR = 3.5
-SPIN_FACTOR = 2.5          # r^2 m / I, so dw = -(2.5 / (m r)) N x J
+from .energy import SPHERE_INERTIA
+
+# r^2 m / I of a solid sphere (2.5), so dw = -(2.5 / (m r)) N x J, and the
+# slip a unit tangential impulse stops per 1/m: 1 + r^2 m / I (3.5).
+SPIN_FACTOR = 1.0 / SPHERE_INERTIA
+STICK_FACTOR = 1.0 + SPIN_FACTOR
 
 
 def contact_slip(v_i: np.ndarray, v_j: np.ndarray, spin_i: np.ndarray, spin_j: np.ndarray,
@@ -59,8 +62,12 @@ def spin_change(inv_mass: np.ndarray, radius: np.ndarray, normal: np.ndarray,
 
 def apply_pair_friction(velocity: np.ndarray, angular: np.ndarray, inv_mass: np.ndarray,
                         radius: np.ndarray, i: np.ndarray, j: np.ndarray, normal: np.ndarray,
-                        normal_impulse: np.ndarray, mu, planar: bool) -> float:
-    """Apply friction to pairs that share no dynamic particle; return energy removed, J."""
+                        normal_impulse: np.ndarray, mu, planar: bool
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """Apply friction to pairs that share no dynamic particle.
+
+    Returns (tangential impulse magnitude, N s, and energy removed, J, per pair).
+    """
     w_i, w_j = inv_mass[i], inv_mass[j]
     u_t = contact_slip(velocity[i], velocity[j], radius[i, None] * angular[i],
                        radius[j, None] * angular[j], normal, planar)
@@ -70,13 +77,17 @@ def apply_pair_friction(velocity: np.ndarray, angular: np.ndarray, inv_mass: np.
     np.add.at(angular, i, spin_change(w_i, radius[i], normal, impulse))
     # Side j feels -J at r_j = +radius_j N: the same sign of spin change.
     np.add.at(angular, j, spin_change(w_j, radius[j], normal, impulse))
-    return float(removed.sum())
+    return np.sqrt(np.einsum('ij,ij->i', impulse, impulse)), removed
 
 
 def apply_wall_friction(velocity: np.ndarray, angular: np.ndarray, inv_mass: np.ndarray,
                         radius: np.ndarray, index: np.ndarray, normal: np.ndarray,
-                        normal_impulse: np.ndarray, mu, planar: bool) -> float:
-    """Apply friction against a static wall (distinct ``index``); return energy removed, J."""
+                        normal_impulse: np.ndarray, mu, planar: bool
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """Apply friction against a static wall (distinct ``index``).
+
+    Returns (tangential impulse magnitude, N s, and energy removed, J, per particle).
+    """
     w, r = inv_mass[index], radius[index]
     still = np.zeros_like(normal)
     u_t = contact_slip(velocity[index], still, r[:, None] * angular[index], still, normal,
@@ -84,4 +95,4 @@ def apply_wall_friction(velocity: np.ndarray, angular: np.ndarray, inv_mass: np.
     impulse, removed = friction_impulse(u_t, w, normal_impulse, mu)
     velocity[index] += w[:, None] * impulse
     angular[index] += spin_change(w, r, normal, impulse)
-    return float(removed.sum())
+    return np.sqrt(np.einsum('ij,ij->i', impulse, impulse)), removed

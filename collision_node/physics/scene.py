@@ -68,10 +68,11 @@ def shipped_scene_dirs() -> list[Path]:
     ``share/collision_node/scenes``.
     """
     here = Path(__file__).resolve().parent
-    candidates = [here.parents[1] / 'scenes',
-                  Path(sys.prefix) / 'share' / 'collision_node' / 'scenes']
-    for parent in here.parents:
-        candidates.append(parent / 'share' / 'collision_node' / 'scenes')
+    # The package's own prefix first: a colcon install beside a venv that has
+    # the package registered too must read its own scenes.
+    candidates = [here.parents[1] / 'scenes']
+    candidates += [parent / 'share' / 'collision_node' / 'scenes' for parent in here.parents]
+    candidates.append(Path(sys.prefix) / 'share' / 'collision_node' / 'scenes')
     return [c for c in candidates if c.is_dir()]
 
 

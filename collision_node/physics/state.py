@@ -107,18 +107,6 @@ class ParticleState:
         """Return a shallow copy with some arrays replaced."""
         return replace(self, **arrays)
 
-    def kinetic_energy(self) -> float:
-        """Linear plus rotational kinetic energy of the dynamic particles, J."""
-        dyn = self.dynamic
-        mass = 1.0 / self.inv_mass[dyn]
-        v = self.velocity[dyn]
-        linear = 0.5 * float(np.sum(mass * np.einsum('ij,ij->i', v, v)))
-        if self.angular_velocity is None:
-            return linear
-        inertia = 0.4 * mass * self.radius[dyn] ** 2
-        w = self.angular_velocity[dyn]
-        return linear + 0.5 * float(np.sum(inertia * np.einsum('ij,ij->i', w, w)))
-
     def momentum(self) -> np.ndarray:
         """Total linear momentum of the dynamic particles, kg m/s."""
         dyn = self.dynamic

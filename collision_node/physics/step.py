@@ -82,17 +82,36 @@ class StepContext:
     # Where the contact law records the impacts it resolves; None while
     # nobody reads them (recording then costs nothing).
     impacts: Optional[ImpactLog] = None
-    # Energy the effects had removed before this (sub)step, J: a stage can tell
-    # what this step has dissipated so far (separation uses it).
-    dissipated_before: float = field(init=False)
+    # Energy the contact law and the effects removed in this (sub)step, per
+    # particle, J: the separation stage budgets a lift per cluster of
+    # touching particles from it, never from losses elsewhere. Kept only
+    # under gravity (the only case a lift changes energy).
+    losses: Optional[np.ndarray] = field(init=False, default=None)
 
     def __post_init__(self) -> None:
-        """Note the dissipation booked so far."""
-        self.dissipated_before = sum(self.stats.dissipated.values())
+        """Start the per-particle losses of this (sub)step under gravity."""
+        if self.effects.gravity is not None:
+            self.losses = np.zeros(len(self.state))
 
-    def dissipated_now(self) -> float:
-        """Return the energy the effects removed so far in this (sub)step, J."""
-        return sum(self.stats.dissipated.values()) - self.dissipated_before
+    def book(self, effect: str, removed: np.ndarray, i: np.ndarray,
+             j: Optional[np.ndarray] = None) -> None:
+        """Book energy ``removed`` (J, one value per contact) by ``effect``.
+
+        ``i`` (and ``j`` for pairs) name the particles of each contact; a
+        pair's loss is attributed to its two particles by inverse-mass share
+        (a static partner takes none).
+        """
+        removed = np.asarray(removed, dtype=float)
+        self.stats.add_dissipated(effect, float(removed.sum()))
+        if self.losses is None or not removed.size:
+            return
+        if j is None:
+            np.add.at(self.losses, i, removed)
+            return
+        w_i, w_j = self.state.inv_mass[i], self.state.inv_mass[j]
+        share_i = w_i / (w_i + w_j)
+        np.add.at(self.losses, i, removed * share_i)
+        np.add.at(self.losses, j, removed * (1.0 - share_i))
 
 
 class Stage:

@@ -48,7 +48,11 @@ class World:
         self.steps = 0
         self.stats = StepStats()
         self.pipeline = build_pipeline(self.scene.effects, self.scene.accuracy)
-        self.energy_start = energy.mechanical(self.state, self.scene.effects.gravity)
+        # Potential energy is measured from the grid point nearest the scene's
+        # initial centre of mass (the origin for a scene near it; see
+        # ``energy``), so it keeps its digits however far from the origin.
+        self.reference = energy.reference_point(self.state)
+        self.energy_start = self._mechanical(self.state)
         self.energy_spawned = 0.0
         # Energy changed by commands (delete, teleport, impulse), so the balance holds.
         self.energy_commanded = 0.0
@@ -140,9 +144,13 @@ class World:
         first = self.next_id
         ids = np.arange(first, first + len(particles), dtype=np.int64)
         added = self._with_spin_state(particles.with_arrays(ids=ids))
+        if not self.state.dynamic.any():
+            # No dynamic particle yet, so every potential so far is 0 whatever
+            # the reference: take the newcomers' point, as a scene's start does.
+            self.reference = energy.reference_point(added)
         self.state = self.state.concatenate(added)
         self.next_id = first + len(particles)
-        self.energy_spawned += energy.mechanical(added, self.scene.effects.gravity)
+        self.energy_spawned += self._mechanical(added)
         return ids
 
     def spawn_text(self, text: str, source: str = 'spawn') -> np.ndarray:
@@ -161,7 +169,7 @@ class World:
         keep = np.ones(len(self.state), dtype=bool)
         keep[rows] = False
         removed = self.state.subset(rows)
-        self.energy_commanded -= energy.mechanical(removed, self.scene.effects.gravity)
+        self.energy_commanded -= self._mechanical(removed)
         self.state = self.state.subset(keep)
         return ids
 
@@ -205,8 +213,7 @@ class World:
     def _replace_row(self, row: int, position: Optional[np.ndarray],
                      velocity: Optional[np.ndarray]) -> None:
         """Give one particle a new position/velocity in a new state, booking the energy."""
-        gravity = self.scene.effects.gravity
-        before = energy.mechanical(self.state.subset([row]), gravity)
+        before = self._mechanical(self.state.subset([row]))
         arrays = {}
         if position is not None:
             arrays['position'] = self.state.position.copy()
@@ -217,21 +224,27 @@ class World:
         # A new state object (not an in-place edit), so stages that cache the
         # last step's state (event mode) start afresh.
         self.state = self.state.with_arrays(**arrays)
-        self.energy_commanded += energy.mechanical(self.state.subset([row]), gravity) - before
+        self.energy_commanded += self._mechanical(self.state.subset([row])) - before
 
     def explain(self) -> str:
         """Return the step pipeline, one numbered stage per line."""
         return self.pipeline.explain()
 
+    def _mechanical(self, state: ParticleState) -> float:
+        """Kinetic plus potential energy of ``state`` (potential from the reference), J."""
+        return energy.mechanical(state, self.scene.effects.gravity, reference=self.reference)
+
     def kinetic_energy(self) -> float:
         """Total kinetic energy in joules."""
-        return self.state.kinetic_energy()
+        return energy.kinetic_linear(self.state) + energy.kinetic_rotational(self.state)
 
     def energy(self) -> dict:
         """Return the energy balance, J, as a JSON-ready mapping.
 
         ``kinetic_linear``, ``kinetic_rotational``, ``potential`` (gravity,
-        zero at the origin) and their ``total`` now; ``start`` (at reset)
+        zero at the reference point: the origin, or for a scene far from it
+        the 1024 m grid point nearest its initial centre of mass) and
+        their ``total`` now; ``start`` (at reset)
         plus ``spawned`` (brought in by spawns) plus ``commanded`` (changed by
         delete, teleport and impulse commands); ``dissipated``, the energy
         each effect removed (a negative entry added energy, e.g.
@@ -239,7 +252,7 @@ class World:
         ``balance_error`` = total + sum(dissipated) - start - spawned - commanded, which
         is zero up to rounding.
         """
-        report = energy.breakdown(self.state, self.scene.effects.gravity)
+        report = energy.breakdown(self.state, self.scene.effects.gravity, self.reference)
         dissipated = dict(self.stats.dissipated)
         report.update(start=self.energy_start, spawned=self.energy_spawned,
                       commanded=self.energy_commanded, dissipated=dissipated,

@@ -23,7 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..impulse import apply_normal_impulses, closing_speed
+from ..contact_law import apply_pair_impulses, pair_coefficient, record_pairs
+from ..impulse import closing_speed
 from ..step import Stage, StepContext
 
 
@@ -51,26 +52,33 @@ class BatchedImpulseStage(Stage):
         self.iterations = iterations
 
     def run(self, ctx: StepContext) -> None:
-        """Apply impulses in place and count the contacts that received one."""
+        """Apply the law's impulses in place, count the contacts hit, book and record them."""
         contacts = ctx.contacts
         if contacts is None or len(contacts) == 0:
             return
         state = ctx.state
         i, j, normal = contacts.i, contacts.j, contacts.normal
-        track_energy = self.restitution < 1.0
-        energy_before = state.kinetic_energy() if track_energy else 0.0
+        restitution = pair_coefficient(state.restitution, i, j, self.restitution)
+        record = ctx.impacts is not None
+        if record:
+            approach0 = -closing_speed(state.velocity, i, j, normal)
+            summed = np.zeros(len(contacts))
         hit = np.zeros(len(contacts), dtype=bool)
         for _ in range(self.iterations):
             approaching = closing_speed(state.velocity, i, j, normal) < 0.0
             if not approaching.any():
                 break
             scale = shared_scale(i, j, approaching, state.dynamic, len(state))
-            apply_normal_impulses(state.velocity, state.inv_mass, i, j, normal,
-                                  self.restitution, scale=scale)
+            result = apply_pair_impulses(state.velocity, state.inv_mass, i, j, normal,
+                                         restitution, scale=scale)
+            ctx.book('restitution', result.removed_at, result.particles)
+            if record:
+                summed += result.magnitude
             hit |= approaching
         ctx.stats.collisions += int(hit.sum())
-        if track_energy:
-            ctx.stats.add_dissipated('restitution', energy_before - state.kinetic_energy())
+        if record:
+            record_pairs(ctx.impacts, ctx.time, state.position, state.radius, i[hit], j[hit],
+                         normal[hit], summed[hit], 0.0, np.maximum(approach0[hit], 0.0))
 
     def describe(self) -> str:
         """Say what the stage does."""

@@ -11,8 +11,10 @@ instead of stepping:
   to zero; the root is taken in its cancellation-free form.
 
 Impact times and post-impact states are therefore exact to round-off; the
-velocity update is the lecture's impulse along the line of action at
-contact (``impulse.apply_normal_impulses``).
+velocity update is the one contact law's (``contact_law``): the lecture's
+impulse along the line of action at contact, per-particle restitution by
+the combine rule, e = 0 below the restitution threshold, the wall as a
+side of w = 0, losses from the impulses, impacts recorded at their time.
 
 Bookkeeping: each particle stores its state at its own reference time; a
 heap holds predicted events, each stamped with the change counters of its
@@ -61,8 +63,9 @@ import numpy as np
 
 from ..accuracy import (AccuracySettings, check_event_mode, check_event_particles,
                         EVENT_FALLBACK, MIN_EVENT_BUDGET, PRESETS)
+from ..contact_law import (apply_pair_impulses, apply_wall_impulses, pair_coefficient,
+                           record_pairs, record_walls, thresholded, wall_coefficient)
 from ..effects import Effects
-from ..impulse import apply_normal_impulses
 from ..step import Pipeline, Stage, StepContext
 from ..state import ParticleState
 from .narrowphase import line_of_action
@@ -106,13 +109,6 @@ def entering_time(gap: np.ndarray, rate: np.ndarray, curvature: np.ndarray) -> n
     return s
 
 
-def _energy(state: ParticleState, index: np.ndarray) -> float:
-    """Linear kinetic energy of the (dynamic) particles in ``index``."""
-    dyn = index[state.inv_mass[index] > 0.0]
-    v = state.velocity[dyn]
-    return 0.5 * float(np.sum(np.einsum('ij,ij->i', v, v) / state.inv_mass[dyn]))
-
-
 class EventDrivenStage(Stage):
     """Advance the world by dt exactly, impact by impact."""
 
@@ -134,6 +130,10 @@ class EventDrivenStage(Stage):
         self.event_budget = accuracy.event_budget
         self.accuracy, self.effects = accuracy, effects
         self.under_gravity = bool(np.any(self.gravity != 0.0))
+        # A declared restitution threshold is part of the contact law. The
+        # default one under gravity (2 |g| dt) is the step solvers' device for
+        # resting contact, which this mode hands to them: exact impacts keep e.
+        self.threshold = effects.restitution_threshold or 0.0
         self.time = 0.0
         self.events = 0
         self._state: Optional[ParticleState] = None
@@ -278,18 +278,23 @@ class EventDrivenStage(Stage):
         s = self._state
         both = np.array([p, q])
         self._advance(both, when)
-        e = self.restitution
+        a, b = both[:1], both[1:]
+        normal, _ = line_of_action(s.position[a] - s.position[b],
+                                   s.velocity[a] - s.velocity[b])
+        approach = -float((s.velocity[p] - s.velocity[q]) @ normal[0])
+        e = thresholded(pair_coefficient(s.restitution, a, b, self.restitution),
+                        np.array([approach]), self.threshold)
+        e = float(np.asarray(e).reshape(-1)[0])
         if self._in_collapse(when, p, q) and e < 1.0:
             if self.under_gravity:
                 raise NotExactable
             e = 1.0
-        normal, _ = line_of_action(s.position[[p]] - s.position[[q]],
-                                   s.velocity[[p]] - s.velocity[[q]])
-        before = _energy(s, both) if e < 1.0 else 0.0
-        if apply_normal_impulses(s.velocity, s.inv_mass, both[:1], both[1:], normal, e)[0]:
+        result = apply_pair_impulses(s.velocity, s.inv_mass, a, b, normal, e)
+        if result.hit[0]:
             ctx.stats.collisions += 1
-            if e < 1.0:
-                ctx.stats.add_dissipated('restitution', before - _energy(s, both))
+            ctx.book('restitution', result.removed, a, b)
+            record_pairs(ctx.impacts, when, s.position, s.radius, a, b, normal,
+                         result.magnitude, 0.0, result.approach)
         self.last_impact[both] = when
         for k in (p, q):
             if s.inv_mass[k] > 0.0:  # a static particle's events stay valid
@@ -304,20 +309,23 @@ class EventDrivenStage(Stage):
         speed_in = toward * s.velocity[p, axis]
         pushed_in = toward * self.gravity[axis]
         if speed_in > 0.0 or (speed_in == 0.0 and pushed_in > 0.0):
-            e = self.walls.restitution
+            index = np.array([p])
+            e = thresholded(wall_coefficient(s.restitution, index, self.walls.restitution),
+                            np.array([speed_in]), self.threshold)
+            e = float(np.asarray(e).reshape(-1)[0])
             if self._in_collapse(when, p):
                 resting = pushed_in > 0.0 and speed_in < 0.5 * pushed_in * self.collapse_time
                 if self.under_gravity and (e < 1.0 or resting):
                     raise NotExactable      # resting on the wall: the step solver takes it
                 e = 1.0
-            speed_out = e * speed_in
-            mass = 1.0 / s.inv_mass[p]
-            ctx.stats.add_dissipated('walls', 0.5 * mass * (speed_in ** 2 - speed_out ** 2))
-            s.velocity[p, axis] = -toward * speed_out
-            wall = self.walls.high[axis] - s.radius[p] if high else \
-                self.walls.low[axis] + s.radius[p]
-            s.position[p, axis] = wall  # exact contact, no drift of round-off
+            plane = float(self.walls.high[axis] if high else self.walls.low[axis])
+            _, magnitude, approach, removed = apply_wall_impulses(
+                s.velocity, s.inv_mass, index, axis, -toward, e, tolerance=-np.inf)
+            ctx.book('walls', removed, index)
+            s.position[p, axis] = plane - toward * s.radius[p]  # exact contact, no drift
             ctx.stats.wall_collisions += 1
+            record_walls(ctx.impacts, when, s.position, index, axis, plane, -toward,
+                         magnitude, 0.0, approach)
             self.last_impact[p] = when
         self._predict(p, when)
 

@@ -21,17 +21,23 @@ it (again positions only).
 Under gravity, moving a particle changes its potential energy. Pushes
 between two dynamic particles are shared by inverse mass, so they leave
 the total potential unchanged; a push off a static particle or a wall
-lifts. Up to the energy the step's contacts removed, a lift only restores
-what resting particles lost falling into their supports during the
-drift. Beyond that it would add energy, and that excess is taken back
-from the lifted particles' speed along the way they were pushed, if they
-move that way: a ball reflected elastically while overlapping a static
-ball, then pushed out of it, is put where its path would have taken it
-with the speed it would have there, so it keeps its apex (without this
-each elastic bounce there added m g times the overlap; found by the
-fuzzer). What such speeds cannot pay (resting or falling particles)
-stays added. Everything is booked as 'separation' (a net addition as a
-negative loss), so the energy balance closes.
+lifts. The budget is local: per cluster of touching particles (the
+connected components of this step's contact graph through dynamic
+particles), up to the energy the contact law and the effects removed
+from that cluster's own particles in this step (``StepContext.losses``),
+a lift only restores what resting particles lost falling into their
+supports during the drift. Beyond that it would add energy, and that
+excess is taken back from the cluster's lifted particles' speed along the
+way they were pushed, if they move that way: a ball reflected
+elastically while overlapping a static ball, then pushed out of it, is
+put where its path would have taken it with the speed it would have
+there, so it keeps its apex (without this each elastic bounce there added
+m g times the overlap; found by the fuzzer), also when an inelastic
+impact elsewhere in the world dissipates in the same step (the budget
+used to be the whole world's). What such speeds cannot pay (resting or
+falling particles) stays added. Everything is booked as 'separation' (a
+net addition as a negative loss), from each particle's displacement,
+-m g . dx, so the energy balance closes, also far from the origin.
 """
 
 from __future__ import annotations
@@ -41,7 +47,7 @@ from typing import Optional
 import numpy as np
 
 from ..effects import Walls
-from ..energy import potential
+from ..energy import lift
 from ..step import Stage, StepContext
 from .narrowphase import line_of_action
 
@@ -59,6 +65,19 @@ def held_by_walls(position: np.ndarray, radius: np.ndarray, push: np.ndarray, wa
     into_low = (p <= walls.low[:dimensions] + r) & (d < 0.0)
     into_high = (p >= walls.high[:dimensions] - r) & (d > 0.0)
     return np.any(into_low | into_high, axis=1)
+
+
+def clusters(n: int, dynamic: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """Return a cluster label per particle: the components of the contact graph.
+
+    Only contacts between two dynamic particles connect; a static particle
+    (or a wall) does not join the particles resting on it into one cluster.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    both = dynamic[i] & dynamic[j]
+    graph = coo_matrix((np.ones(int(both.sum())), (i[both], j[both])), shape=(n, n))
+    return connected_components(graph, directed=False)[1]
 
 
 def separate(position: np.ndarray, inv_mass: np.ndarray, i: np.ndarray, j: np.ndarray,
@@ -110,47 +129,56 @@ class SeparationStage(Stage):
         if gravity is None:
             self._project(ctx, has_pairs)
             return
-        before = potential(ctx.state, gravity)
+        gravity = np.asarray(gravity, float)
         start = ctx.state.position.copy()
         self._project(ctx, has_pairs)
-        paid = self._pay_for_lift(ctx.state, start, np.asarray(gravity, float),
-                                  ctx.dissipated_now())
-        ctx.stats.add_dissipated('separation', before - potential(ctx.state, gravity) + paid)
+        s = ctx.state
+        added = lift(s.inv_mass, s.position - start, gravity)   # delta U per particle
+        cluster = clusters(len(s), s.dynamic, c.i, c.j) if has_pairs else \
+            np.arange(len(s))
+        budget = ctx.losses if ctx.losses is not None else np.zeros(len(s))
+        paid = self._pay_for_lift(s, start, added, cluster, budget)
+        ctx.book('separation', paid - added, np.arange(len(s)))
 
     @staticmethod
-    def _pay_for_lift(state, start: np.ndarray, gravity: np.ndarray, dissipated: float
-                      ) -> float:
-        """Take back what the projection's net lift adds to the step's energy.
+    def _pay_for_lift(state, start: np.ndarray, added: np.ndarray, cluster: np.ndarray,
+                      budget: np.ndarray) -> np.ndarray:
+        """Take back what the projection's net lift adds to each cluster's energy.
 
-        The lift gives back, first, the energy the step's contacts removed
-        (``dissipated``, J): a resting particle fell into its support during
-        the drift, the solve stopped it, the lift restores its height. Only
-        a lift beyond that adds energy, and a lifted particle pays it from
-        its velocity along the way it was moved, if it is moving that way
-        (one reflected while overlapping a static particle or a wall: it is
-        put where its path would have taken it, with the speed it would
-        have there). Returns the kinetic energy removed, J (see the module
-        docstring).
+        ``added`` is the potential energy the projection gave each particle,
+        ``cluster`` its cluster label and ``budget`` the energy removed from
+        it in this step, J. Per cluster, the lift gives back, first, that
+        energy: a resting particle fell into its support during the drift,
+        the solve stopped it, the lift restores its height. Only a lift
+        beyond that adds energy, and a lifted particle pays it from its
+        velocity along the way it was moved, if it is moving that way (one
+        reflected while overlapping a static particle or a wall: it is put
+        where its path would have taken it, with the speed it would have
+        there). Returns the kinetic energy removed per particle, J (see the
+        module docstring).
         """
-        dyn = np.flatnonzero(state.dynamic)
-        mass = 1.0 / state.inv_mass[dyn]
-        moved = state.position[dyn] - start[dyn]
-        lift = -mass * (moved @ gravity)                   # delta U of each particle
-        excess = float(lift.sum()) - max(dissipated, 0.0)
-        if not excess > 0.0:
-            return 0.0
-        up = lift > 0.0
-        index, mass, moved = dyn[up], mass[up], moved[up]
-        owed = excess * lift[up] / float(lift[up].sum())
+        count = int(cluster.max()) + 1 if cluster.size else 0
+        excess = np.bincount(cluster, weights=added, minlength=count) - \
+            np.maximum(np.bincount(cluster, weights=budget, minlength=count), 0.0)
+        removed = np.zeros(added.size)
+        up = (added > 0.0) & (excess[cluster] > 0.0)
+        if not up.any():
+            return removed
+        index = np.flatnonzero(up)
+        raised = np.bincount(cluster[index], weights=added[index], minlength=count)
+        owed = excess[cluster[index]] * added[index] / raised[cluster[index]]
+        mass = 1.0 / state.inv_mass[index]
+        moved = state.position[index] - start[index]
         way = moved / np.linalg.norm(moved, axis=1)[:, None]
         # One still moving against its push (a falling particle in a stack the
         # next solve stops anyway) does not pay: taking its fall speed made a
         # compressed column creep back up, adding energy.
         along = np.maximum(np.einsum('ij,ij->i', state.velocity[index], way), 0.0)
-        removed = np.minimum(owed, 0.5 * mass * along * along)
-        slower = np.sqrt(np.maximum(along * along - 2.0 * removed / mass, 0.0))
+        taken = np.minimum(owed, 0.5 * mass * along * along)
+        slower = np.sqrt(np.maximum(along * along - 2.0 * taken / mass, 0.0))
         state.velocity[index] += (slower - along)[:, None] * way
-        return float(removed.sum())
+        removed[index] = taken
+        return removed
 
     def _project(self, ctx: StepContext, has_pairs: bool) -> None:
         """Separate overlapping pairs, then clamp particles inside the walls.

@@ -5,12 +5,11 @@ until no contact approaches or the iteration budget is spent. Each
 impulse only changes the velocity component along N, exactly as the
 lecture's velocity update.
 
-A scene without effects (e = 1, no threshold) takes the lecture's path
-unchanged. With e < 1 only, the energy removed is measured around the
-solve. With per-particle restitution, a restitution threshold (gravity
-sets one by default), friction or walls the general path runs:
+Every impulse comes from the one contact law (``contact_law``); a scene
+without effects (e = 1, no threshold) gets exactly the lecture's
+impulses. What the solve adds to the law:
 
-- restitution per pair by the combine rule (``effects.combine``), set to
+- restitution per pair by the combine rule (``contact_law.combine``), set to
   0 below the restitution threshold: an impulse gets e only if the pair
   closes faster than the threshold and either did so before the solve or
   touches a particle that an impact struck within it (``_thresholded``);
@@ -23,7 +22,10 @@ sets one by default), friction or walls the general path runs:
   they act only on contacts closing slower than the threshold and, like a
   floor, do not conserve momentum;
 - the energy removed is booked per effect ('restitution', 'walls',
-  'friction') from the exact per-contact formulas.
+  'friction') by the law, from the impulses;
+- with an impact log, each contact that received impulses is recorded
+  once per solve: its summed normal and tangential impulse and the speed
+  it closed at before the solve.
 
 The dense-cluster fallback (pairs past ``MAX_BATCHES`` colours) is
 frictionless.
@@ -36,10 +38,11 @@ from typing import Optional
 import numpy as np
 
 from ..coloring import color_pairs
-from ..effects import Walls, combine
-from ..energy import kinetic_linear
-from ..friction import apply_pair_friction, apply_wall_friction
-from ..impulse import apply_normal_impulses, apply_normal_impulses_booked, closing_speed
+from ..contact_law import (apply_impulses, apply_pair_friction, apply_pair_impulses,
+                           apply_wall_friction, apply_wall_impulses, pair_coefficient,
+                           record_pairs, record_walls, wall_coefficient)
+from ..effects import Walls
+from ..impulse import closing_speed
 from ..step import Contacts, Stage, StepContext
 
 # Past this many colours (only in very dense clusters, e.g. a thousand
@@ -67,55 +70,79 @@ STRIKE_FACTOR = 10.0
 # needs a few: stopping it against one support can make it approach the
 # other).
 SHOCK_PASSES = 8
-# A particle within this fraction of (radius + |plane|) of a wall plane
-# touches it (the walls stage places resting particles on the plane to
-# rounding).
+# A particle within this fraction of its radius, plus WALL_ULPS floating-point
+# spacings at the plane's coordinate, of a wall plane touches it (the walls
+# stage places resting particles on the plane to rounding). Never a fraction
+# of the coordinate itself: 1e-9 of a plane at x = 1e9 m was a slop of 1 m.
 WALL_SLOP = 1.0e-9
+WALL_ULPS = 4.0
 
 
 class WallContacts:
     """Particles touching one wall plane, solved as one batch in each sweep."""
 
-    def __init__(self, axis: int, inward: float, index: np.ndarray, restitution,
-                 friction, threshold: float, impact: Optional[np.ndarray]) -> None:
+    def __init__(self, axis: int, plane: float, inward: float, index: np.ndarray,
+                 restitution, friction, threshold: float, impact: Optional[np.ndarray],
+                 record: bool) -> None:
         """Keep the plane, touching particles, their e and mu, the threshold and impacts."""
-        self.axis, self.inward, self.index = axis, inward, index
+        self.axis, self.plane, self.inward, self.index = axis, plane, inward, index
         self.restitution, self.friction = restitution, friction
         self.threshold, self.impact = threshold, impact
+        self.hit = np.zeros(index.size, dtype=bool)
+        # Summed impulses and the approach speed before the solve, for the log.
+        self.normal_impulse = self.tangential = self.approach = None
+        if record:
+            self.normal_impulse = np.zeros(index.size)
+            self.tangential = np.zeros(index.size)
 
-    def solve(self, state, tolerance: float, planar: bool, lost: dict,
-              struck: Optional[np.ndarray] = None) -> Optional[np.ndarray]:
+    def solve(self, ctx: StepContext, tolerance: float, planar: bool,
+              struck: Optional[np.ndarray] = None) -> bool:
         """Reflect particles approaching the plane, v_n -> -e v_n; book losses.
 
         With a restitution threshold e is the wall's only for a particle
         approaching faster than it that arrived so (an impact) or was
         ``struck`` in this solve, as for pairs; a fast bounce marks it
-        struck. Returns the mask of particles hit, or None when none
-        approached.
+        struck. Returns whether any particle approached.
         """
-        index = self.index
-        u = self.inward * state.velocity[index, self.axis]
-        approaching = u < -tolerance
-        if not approaching.any():
-            return None
+        state, index = ctx.state, self.index
+        if self.normal_impulse is not None and self.approach is None:
+            self.approach = -self.inward * state.velocity[index, self.axis]
         e = self.restitution
         if struck is not None:
+            u = self.inward * state.velocity[index, self.axis]
             e = np.where((-u >= self.threshold) & (self.impact | struck[index]), e, 0.0)
-            struck[index[approaching & (e > 0.0) & (-u >= STRIKE_FACTOR * self.threshold)]] = True
-        change = np.where(approaching, -(1.0 + e) * u, 0.0)
-        state.velocity[index, self.axis] += self.inward * change
-        w = state.inv_mass[index]
-        impulse = change / w
-        lost['walls'] += 0.5 * float(np.sum(impulse * -u * (1.0 - e)))
+        approaching, magnitude, approach, removed = apply_wall_impulses(
+            state.velocity, state.inv_mass, index, self.axis, self.inward, e, tolerance)
+        if not approaching.any():
+            return False
+        if struck is not None:
+            struck[index[approaching & (e > 0.0)
+                         & (approach >= STRIKE_FACTOR * self.threshold)]] = True
+        self.hit |= approaching
+        hit = index[approaching]
+        ctx.book('walls', removed[approaching], hit)
+        if self.normal_impulse is not None:
+            self.normal_impulse += magnitude
         if self.friction is not None:
-            hit = index[approaching]
             normal = np.zeros((hit.size, 3))
             normal[:, self.axis] = self.inward
             mu = self.friction[approaching] if np.ndim(self.friction) else self.friction
-            lost['friction'] += apply_wall_friction(
+            tangential, lost = apply_wall_friction(
                 state.velocity, state.angular_velocity, state.inv_mass, state.radius,
-                hit, normal, impulse[approaching], mu, planar)
-        return approaching
+                hit, normal, magnitude[approaching], mu, planar)
+            ctx.book('friction', lost, hit)
+            if self.tangential is not None:
+                self.tangential[approaching] += tangential
+        return True
+
+    def record(self, ctx: StepContext) -> None:
+        """Record each particle the plane pushed in this solve (nothing without a log)."""
+        if self.normal_impulse is None:
+            return
+        pushed = self.normal_impulse > 0.0
+        record_walls(ctx.impacts, ctx.time, ctx.state.position, self.index[pushed], self.axis,
+                     self.plane, self.inward, self.normal_impulse[pushed],
+                     self.tangential[pushed], np.maximum(self.approach[pushed], 0.0))
 
 
 class SequentialImpulseStage(Stage):
@@ -141,66 +168,17 @@ class SequentialImpulseStage(Stage):
         self.gravity = gravity
 
     def run(self, ctx: StepContext) -> None:
-        """Apply impulses in place and count the contacts that received one."""
-        contacts = ctx.contacts
-        if self.walls is None and (contacts is None or len(contacts) == 0):
-            return
-        threshold = ctx.effects.threshold(ctx.dt)
-        if threshold > 0.0 or self.friction is not None or self.walls is not None or \
-                ctx.state.restitution is not None:
-            self._run_dissipative(ctx, threshold)
-            return
-        state = ctx.state
-        i, j, normal = contacts.i, contacts.j, contacts.normal
-        batches, leftover = color_pairs(i, j, state.dynamic, MAX_BATCHES)
-        leftover_scale = None
-        if leftover.size:
-            busiest = np.maximum(np.bincount(i[leftover], minlength=len(state)),
-                                 np.bincount(j[leftover], minlength=len(state)))
-            leftover_scale = 1.0 / np.maximum(busiest[i[leftover]], busiest[j[leftover]])
-        track_energy = self.restitution < 1.0
-        if track_energy:
-            touched = np.unique(np.concatenate([i, j]))
-            energy_before = self._energy(state, touched)
-        hit = np.zeros(len(contacts), dtype=bool)
-        for _ in range(self.iterations):
-            applied = False
-            for batch in batches:
-                mask = apply_normal_impulses(state.velocity, state.inv_mass, i[batch],
-                                             j[batch], normal[batch], self.restitution)
-                if mask.any():
-                    hit[batch[mask]] = True
-                    applied = True
-            if leftover.size:
-                mask = apply_normal_impulses(state.velocity, state.inv_mass, i[leftover],
-                                             j[leftover], normal[leftover], self.restitution,
-                                             scale=leftover_scale)
-                if mask.any():
-                    hit[leftover[mask]] = True
-                    applied = True
-            # One batch shares no dynamic particle, so after one sweep every
-            # contact is resolved (vn' = -e vn >= 0) and a checking sweep
-            # would find nothing: skip it.
-            if not applied or (len(batches) == 1 and not leftover.size):
-                break
-        ctx.stats.collisions += int(hit.sum())
-        if track_energy:
-            ctx.stats.add_dissipated('restitution',
-                                     energy_before - self._energy(state, touched))
-
-    def _run_dissipative(self, ctx: StepContext, threshold: float) -> None:
-        """Solve with per-pair restitution, the threshold, friction and walls; book losses."""
-        state = ctx.state
+        """Apply the law's impulses in place, count the contacts hit, book and record them."""
         contacts = ctx.contacts if ctx.contacts is not None else Contacts.empty()
+        if self.walls is None and len(contacts) == 0:
+            return
+        state = ctx.state
+        threshold = ctx.effects.threshold(ctx.dt)
         i, j, normal = contacts.i, contacts.j, contacts.normal
-        own = state.restitution
-        restitution = combine(None if own is None else own[i],
-                              None if own is None else own[j], self.restitution)
+        restitution = pair_coefficient(state.restitution, i, j, self.restitution)
         mu = None
         if self.friction is not None:
-            own_mu = state.friction
-            mu = combine(None if own_mu is None else own_mu[i],
-                         None if own_mu is None else own_mu[j], self.friction)
+            mu = pair_coefficient(state.friction, i, j, self.friction)
         mu_per_pair = np.ndim(mu) > 0
         planar = ctx.dimensions == 2
         shock = self.gravity is not None and threshold > 0.0
@@ -225,10 +203,13 @@ class SequentialImpulseStage(Stage):
             impact = -closing_speed(state.velocity, i, j, normal) >= threshold
         per_pair = np.ndim(restitution) > 0
         batches, leftover = color_pairs(i, j, state.dynamic, MAX_BATCHES)
-        walls = self._wall_contacts(ctx, threshold)
+        record = ctx.impacts is not None
+        walls = self._wall_contacts(ctx, threshold, record)
         hit = np.zeros(len(contacts), dtype=bool)
-        wall_hit = [np.zeros(len(w.index), dtype=bool) for w in walls]
-        lost = {'restitution': 0.0, 'walls': 0.0, 'friction': 0.0}
+        if record:
+            approach0 = -closing_speed(state.velocity, i, j, normal)
+            summed_normal = np.zeros(len(contacts))
+            summed_tangential = np.zeros(len(contacts))
         for _ in range(self.iterations):
             applied = False
             for batch in batches:
@@ -236,43 +217,48 @@ class SequentialImpulseStage(Stage):
                 e = restitution[batch] if per_pair else restitution
                 if struck is not None:
                     e = self._thresholded(state, bi, bj, bn, e, threshold, impact[batch], struck)
-                mask, magnitude, removed = apply_normal_impulses_booked(
-                    state.velocity, state.inv_mass, bi, bj, bn, e, tolerance)
+                result = apply_pair_impulses(state.velocity, state.inv_mass, bi, bj, bn, e,
+                                             tolerance)
+                mask = result.hit
                 if not mask.any():
                     continue
                 if struck is not None:
-                    closing = magnitude * (state.inv_mass[bi] + state.inv_mass[bj]) / (1.0 + e)
-                    bouncing = mask & (e > 0.0) & (closing >= STRIKE_FACTOR * threshold)
+                    bouncing = mask & (e > 0.0) & (result.approach >= STRIKE_FACTOR * threshold)
                     struck[bi[bouncing]] = struck[bj[bouncing]] = True
                 hit[batch[mask]] = True
                 applied = True
-                lost['restitution'] += removed
+                ctx.book('restitution', result.removed[mask], bi[mask], bj[mask])
+                if record:
+                    summed_normal[batch] += result.magnitude
                 if mu is not None:
-                    lost['friction'] += apply_pair_friction(
+                    tangential, lost = apply_pair_friction(
                         state.velocity, state.angular_velocity, state.inv_mass, state.radius,
-                        bi[mask], bj[mask], bn[mask], magnitude[mask],
+                        bi[mask], bj[mask], bn[mask], result.magnitude[mask],
                         mu[batch][mask] if mu_per_pair else mu, planar)
+                    ctx.book('friction', lost, bi[mask], bj[mask])
+                    if record:
+                        summed_tangential[batch[mask]] += tangential
             if leftover.size:
-                touched = np.unique(np.concatenate([i[leftover], j[leftover]]))
-                before = kinetic_linear(state, touched)
+                li, lj, ln = i[leftover], j[leftover], normal[leftover]
                 e = restitution[leftover] if per_pair else restitution
                 if struck is not None:
-                    e = self._thresholded(state, i[leftover], j[leftover], normal[leftover], e,
-                                          threshold, impact[leftover], struck)
-                mask = apply_normal_impulses(state.velocity, state.inv_mass, i[leftover],
-                                             j[leftover], normal[leftover], e,
+                    e = self._thresholded(state, li, lj, ln, e, threshold, impact[leftover],
+                                          struck)
+                result = apply_pair_impulses(state.velocity, state.inv_mass, li, lj, ln, e,
                                              scale=self._leftover_scale(state, i, j, leftover))
-                if mask.any():
-                    hit[leftover[mask]] = True
+                if result.hit.any():
+                    hit[leftover[result.hit]] = True
                     applied = True
-                    lost['restitution'] += before - kinetic_linear(state, touched)
+                    ctx.book('restitution', result.removed_at, result.particles)
+                    if record:
+                        summed_normal[leftover] += result.magnitude
             # Each plane is one batch: a particle touches a plane once.
-            for wall, wall_mask in zip(walls, wall_hit):
-                mask = wall.solve(state, tolerance, planar, lost, struck)
-                if mask is not None:
-                    wall_mask |= mask
-                    applied = True
-            if not applied:
+            for wall in walls:
+                applied = wall.solve(ctx, tolerance, planar, struck) or applied
+            # One batch shares no dynamic particle, so after one sweep every
+            # contact is resolved (vn' = -e vn >= 0) and a checking sweep
+            # would find nothing: skip it.
+            if not applied or (len(batches) == 1 and not leftover.size and not walls):
                 break
         if shock and len(contacts):
             # The sweeps stop at the tolerance, which leaves a stack sinking at up
@@ -281,20 +267,24 @@ class SequentialImpulseStage(Stage):
             # shock passes finish resting contact exactly (tolerance 0).
             # Walls are the bottom of every pile: solve them first and after each pass.
             for wall in walls:
-                wall.solve(state, 0.0, planar, lost, struck)
+                wall.solve(ctx, 0.0, planar, struck)
             for _ in range(SHOCK_PASSES):
-                removed = self._shock_pass(state, i, j, normal, self.gravity, threshold, 0.0)
+                pushed = self._shock_pass(ctx, i, j, normal, self.gravity, threshold, 0.0)
                 for wall in walls:
-                    wall.solve(state, 0.0, planar, lost, struck)
-                if removed is None:
+                    wall.solve(ctx, 0.0, planar, struck)
+                if pushed is None:
                     break
-                lost['restitution'] += removed
+                if record:
+                    summed_normal += pushed
         ctx.stats.collisions += int(hit.sum())
-        ctx.stats.wall_collisions += int(sum(int(m.sum()) for m in wall_hit))
-        for effect, energy in lost.items():
-            if effect == 'restitution' or (effect == 'walls' and walls) or \
-                    (effect == 'friction' and mu is not None):
-                ctx.stats.add_dissipated(effect, energy)
+        ctx.stats.wall_collisions += int(sum(int(w.hit.sum()) for w in walls))
+        if record:
+            pushed = summed_normal > 0.0
+            record_pairs(ctx.impacts, ctx.time, state.position, state.radius, i[pushed],
+                         j[pushed], normal[pushed], summed_normal[pushed],
+                         summed_tangential[pushed], np.maximum(approach0[pushed], 0.0))
+            for wall in walls:
+                wall.record(ctx)
 
     @staticmethod
     def _thresholded(state, i: np.ndarray, j: np.ndarray, normal: np.ndarray, restitution,
@@ -303,7 +293,8 @@ class SequentialImpulseStage(Stage):
         fast = -closing_speed(state.velocity, i, j, normal) >= threshold
         return np.where(fast & (impact | struck[i] | struck[j]), restitution, 0.0)
 
-    def _wall_contacts(self, ctx: StepContext, threshold: float) -> list['WallContacts']:
+    def _wall_contacts(self, ctx: StepContext, threshold: float,
+                       record: bool) -> list['WallContacts']:
         """Return the particles touching each wall plane, one entry per plane."""
         if self.walls is None:
             return []
@@ -311,27 +302,27 @@ class SequentialImpulseStage(Stage):
         out = []
         for axis, plane, inward in self.walls.planes(ctx.dimensions):
             gap = inward * (s.position[:, axis] - plane) - s.radius
-            slop = WALL_SLOP * (s.radius + abs(plane))
+            # Relative to the particle and to the float spacing where it is.
+            slop = WALL_SLOP * s.radius + WALL_ULPS * np.spacing(abs(plane))
             index = np.flatnonzero(s.dynamic & (gap <= slop))
             if index.size == 0:
                 continue
-            own = None if s.restitution is None else s.restitution[index]
-            e = combine(own, None, self.walls.restitution)
+            e = wall_coefficient(s.restitution, index, self.walls.restitution)
             impact = None
             if threshold > 0.0:
                 impact = -inward * s.velocity[index, axis] >= threshold
             mu = None
             if self.friction is not None:
-                own_mu = None if s.friction is None else s.friction[index]
-                mu = combine(own_mu, None, self.friction)
-            out.append(WallContacts(axis, inward, index, e, mu, threshold, impact))
+                mu = wall_coefficient(s.friction, index, self.friction)
+            out.append(WallContacts(axis, plane, inward, index, e, mu, threshold, impact,
+                                    record))
         return out
 
     @staticmethod
-    def _shock_pass(state, i: np.ndarray, j: np.ndarray, normal: np.ndarray,
+    def _shock_pass(ctx: StepContext, i: np.ndarray, j: np.ndarray, normal: np.ndarray,
                     gravity: np.ndarray, threshold: float, tolerance: float
-                    ) -> Optional[float]:
-        """Stop resting contacts from the ground up; return the energy removed.
+                    ) -> Optional[np.ndarray]:
+        """Stop resting contacts from the ground up; return the impulse per contact.
 
         Shock propagation (Guendelman, Bridson and Fedkiw 2003): sweeps over a
         pile converge slowly because each inelastic impulse pushes the lower
@@ -344,10 +335,15 @@ class SequentialImpulseStage(Stage):
         only the upper particle's kinetic energy changes, and it can only
         fall. It acts only on pairs still closing slower than the
         restitution threshold, i.e. resting contact the sweeps left
-        unfinished; real impacts were solved by the sweeps. Returns None
-        when no pair needed it.
+        unfinished; real impacts were solved by the sweeps. The energy is
+        the work of the impulses (``contact_law.apply_impulses``), booked
+        as 'restitution'. Returns None when no pair needed it.
         """
-        height = -(state.position @ gravity)
+        state = ctx.state
+        # Heights relative to the first contact's particle: the order is the
+        # same, and the products keep their digits far from the origin.
+        origin = state.position[i[0]]
+        height = -((state.position - origin) @ gravity)
         i_lower = height[i] <= height[j]
         order = np.argsort(np.where(i_lower, height[i], height[j]), kind='stable')
         i, j, normal, i_lower = i[order], j[order], normal[order], i_lower[order]
@@ -357,7 +353,7 @@ class SequentialImpulseStage(Stage):
         batches, leftover = color_pairs(i, j, state.dynamic, MAX_BATCHES)
         if leftover.size:
             batches.append(leftover)
-        removed = None
+        pushed = None
         dynamic = state.dynamic
         for batch in batches:
             up, n_out = upper[batch], outward[batch]
@@ -368,12 +364,14 @@ class SequentialImpulseStage(Stage):
                        & dynamic[up])
             if not resting.any():
                 continue
-            moved = np.unique(up[resting])
-            before = kinetic_linear(state, moved)
-            np.add.at(state.velocity, up[resting],
-                      (target - u_upper)[resting, None] * n_out[resting])
-            removed = (removed or 0.0) + before - kinetic_linear(state, moved)
-        return removed
+            magnitude = (target - u_upper)[resting] / state.inv_mass[up[resting]]
+            particles, removed = apply_impulses(state.velocity, state.inv_mass, up[resting],
+                                                magnitude[:, None] * n_out[resting])
+            ctx.book('restitution', removed, particles)
+            if pushed is None:
+                pushed = np.zeros(i.size)
+            pushed[order[batch[resting]]] += magnitude
+        return pushed
 
     @staticmethod
     def _leftover_scale(state, i: np.ndarray, j: np.ndarray, leftover: np.ndarray
@@ -382,13 +380,6 @@ class SequentialImpulseStage(Stage):
         busiest = np.maximum(np.bincount(i[leftover], minlength=len(state)),
                              np.bincount(j[leftover], minlength=len(state)))
         return 1.0 / np.maximum(busiest[i[leftover]], busiest[j[leftover]])
-
-    @staticmethod
-    def _energy(state, index: np.ndarray) -> float:
-        """Linear kinetic energy of the particles in ``index``."""
-        dyn = index[state.inv_mass[index] > 0.0]
-        v = state.velocity[dyn]
-        return 0.5 * float(np.sum(np.einsum('ij,ij->i', v, v) / state.inv_mass[dyn]))
 
     def describe(self) -> str:
         """Say what the stage does."""

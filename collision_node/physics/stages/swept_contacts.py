@@ -36,8 +36,9 @@ from typing import Optional
 
 import numpy as np
 
-from ..effects import Walls, combine
-from ..impulse import apply_normal_impulses
+from ..contact_law import (apply_pair_impulses, apply_wall_impulses, pair_coefficient,
+                           record_pairs, record_walls, wall_coefficient)
+from ..effects import Walls
 from ..step import Stage, StepContext
 from .batched_impulses import shared_scale
 from .broadphase import BroadphaseStage
@@ -101,13 +102,6 @@ def wall_impact_times(position: np.ndarray, velocity: np.ndarray, radius: np.nda
             times[:, 2 * axis] = local_time + low
             times[:, 2 * axis + 1] = local_time + high
     return times
-
-
-def _linear_energy(velocity: np.ndarray, inv_mass: np.ndarray, index: np.ndarray) -> float:
-    """Linear kinetic energy of the dynamic particles in ``index``, J."""
-    dyn = index[inv_mass[index] > 0.0]
-    return 0.5 * float(np.sum(np.einsum('ij,ij->i', velocity[dyn], velocity[dyn])
-                              / inv_mass[dyn]))
 
 
 class _Escapes:
@@ -291,45 +285,44 @@ class SweptContactStage(Stage):
             x[mover] += v[mover] * (when - local_time[mover])[:, None]
             local_time[mover] = when
         normal, _ = line_of_action(x[a] - x[b], v[a] - v[b])
-        scale = 1.0
+        scale = None
         if self.ordering == 'batched':
             # Simultaneous impacts on one particle share it out (see batched_impulses).
             scale = shared_scale(a, b, np.ones(a.size, dtype=bool), dynamic, len(s))
-        # Per-particle restitution (spawned or declared) with the effects' combine rule.
-        own = s.restitution
-        e = combine(None if own is None else own[a], None if own is None else own[b],
-                    self.restitution)
-        book = own is not None or self.restitution < 1.0
-        if book:
-            touched = np.unique(np.concatenate([a, b]))
-            before = _linear_energy(v, s.inv_mass, touched)
-        hit = apply_normal_impulses(v, s.inv_mass, a, b, normal, e, scale)
-        if book:
-            ctx.stats.add_dissipated('restitution',
-                                     before - _linear_energy(v, s.inv_mass, touched))
+        e = pair_coefficient(s.restitution, a, b, self.restitution)
+        result = apply_pair_impulses(v, s.inv_mass, a, b, normal, e, scale=scale)
+        hit = result.hit
+        if scale is None:
+            ctx.book('restitution', result.removed[hit], a[hit], b[hit])
+        else:
+            ctx.book('restitution', result.removed_at, result.particles)
+        record_pairs(ctx.impacts, ctx.time + time[hit], x, s.radius, a[hit], b[hit],
+                     normal[hit], result.magnitude[hit], 0.0, result.approach[hit])
         ctx.stats.collisions += int(hit.sum())
         changed[a] = True
         changed[b] = True
 
     def _resolve_walls(self, ctx: StepContext, index: np.ndarray, times: np.ndarray,
                        local_time: np.ndarray, changed: np.ndarray) -> None:
-        """Move particles to their wall impact and reflect the normal velocity."""
+        """Move particles to their wall impact and reflect them by the contact law."""
         s = ctx.state
         when = times.min(axis=1)
         s.position[index] += s.velocity[index] * (when - local_time[index])[:, None]
         local_time[index] = when
         at_wall = times == when[:, None]
         for axis in range(ctx.dimensions):
-            v = s.velocity[index, axis]
-            hit = (at_wall[:, 2 * axis] & (v < 0.0)) | (at_wall[:, 2 * axis + 1] & (v > 0.0))
-            if hit.any():
-                e_wall = self.walls.restitution
-                if e_wall < 1.0:
-                    lost = 0.5 * (1.0 - e_wall ** 2) * np.sum(
-                        v[hit] ** 2 / s.inv_mass[index[hit]])
-                    ctx.stats.add_dissipated('walls', float(lost))
-                s.velocity[index[hit], axis] = -e_wall * v[hit]
-                ctx.stats.wall_collisions += int(hit.sum())
+            for column, plane, inward in ((2 * axis, self.walls.low[axis], 1.0),
+                                          (2 * axis + 1, self.walls.high[axis], -1.0)):
+                hit = index[at_wall[:, column] & (inward * s.velocity[index, axis] < 0.0)]
+                if not hit.size:
+                    continue
+                e = wall_coefficient(s.restitution, hit, self.walls.restitution)
+                _, magnitude, approach, removed = apply_wall_impulses(
+                    s.velocity, s.inv_mass, hit, axis, inward, e)
+                ctx.book('walls', removed, hit)
+                ctx.stats.wall_collisions += int(hit.size)
+                record_walls(ctx.impacts, ctx.time + local_time[hit], s.position, hit, axis,
+                             float(plane), inward, magnitude, 0.0, approach)
         changed[index] = True
 
     def describe(self) -> str:

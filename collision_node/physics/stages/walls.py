@@ -1,27 +1,27 @@
 """Walls: axis-aligned planes (a box, or single planes such as a floor).
 
 A particle found past a plane at the end of a step, moving into it, is
-taken back to the instant it touched the plane, reflected there with
-v_n -> -e v_n, and moved on for the rest of the step. With gravity the
-path is the step's parabola (the drift plus gravity stages move particles
-exactly along it), so the time of impact solves
-q1 - u1 t + g_n t^2 / 2 = 0 backwards from the end of the step; with
-e = 1 a ball bouncing on a floor keeps its apex height to rounding, and
-with e < 1 the apex falls by exactly e^2 per bounce. Where that path is
-not the particle's (it was pushed in by separation, or started inside)
-the impact is taken at the end of the step: reflect and clamp.
+taken back to the instant it touched the plane, reflected there by the
+contact law (``contact_law.reflect_on_plane``: v_n -> -e v_n with the
+combined e, 0 below the restitution threshold) and moved on for the rest
+of the step. With gravity the path is the step's parabola (the drift plus
+gravity stages move particles exactly along it); with e = 1 a ball
+bouncing on a floor keeps its apex height to rounding, and with e < 1 the
+apex falls by exactly e^2 per bounce. Where that path is not the
+particle's (it was pushed in by separation, or started inside) the impact
+is taken at the end of the step: reflect and clamp.
 
 A reflected particle that would be back inside the plane before the step
 ends (a slow or inelastic impact under gravity) rests on it: v_n = 0,
-placed on the plane. Impacts slower than the restitution threshold
-(``Effects.threshold``) are perfectly inelastic. Per-particle restitution
-combines with the walls' by the geometric mean (see ``effects``). With
-friction declared, each impact also gets a Coulomb friction impulse
-bounded by mu times its normal impulse, which spins the particle.
+placed on the plane. With friction declared, each impact also gets a
+Coulomb friction impulse bounded by mu times its normal impulse, which
+spins the particle.
 
-Energy: the change of kinetic plus potential energy of the particles a
-plane touches is booked as 'walls' (restitution, resting contact and any
-clamp), the friction part as 'friction'.
+Energy, booked per particle from the law (relative to the plane, so exact
+far from the origin): 'walls' gets the impact's (1 - e^2)/2 m v^2, the
+rebound energy of a particle that comes to rest on the plane, and the
+lift (a negative loss) of a particle put back onto the plane without an
+impact on its path; 'friction' gets the friction impulse's work.
 """
 
 from __future__ import annotations
@@ -30,36 +30,10 @@ from typing import Optional
 
 import numpy as np
 
-from ..effects import Walls, combine
-from ..energy import mechanical
-from ..friction import apply_wall_friction
+from ..contact_law import (apply_wall_friction, record_walls, reflect_on_plane,
+                           wall_coefficient)
+from ..effects import Walls
 from ..step import Stage, StepContext
-
-
-def reflect_on_plane(q1: np.ndarray, u1: np.ndarray, g_n: float, dt: float,
-                     restitution, threshold: float) -> tuple[np.ndarray, np.ndarray]:
-    """Return (gap, normal velocity) at the end of the step after the impact.
-
-    ``q1`` (< 0) is how far the particle is past the plane and ``u1`` (< 0)
-    its velocity along the inward normal at the end of the step; ``g_n`` is
-    gravity along that normal.
-    """
-    # Smallest t >= 0 with q1 - u1 t + g_n t^2 / 2 = 0, in the form without
-    # cancellation (u1 - sqrt(D) adds two negative numbers).
-    disc = u1 * u1 - 2.0 * g_n * q1
-    real = disc >= 0.0
-    denominator = u1 - np.sqrt(np.where(real, disc, 0.0))
-    back = np.where(real & (denominator < 0.0),
-                    2.0 * q1 / np.where(denominator < 0.0, denominator, -1.0), np.inf)
-    on_path = back <= dt
-    back = np.where(on_path, back, 0.0)
-    impact = u1 - g_n * back
-    e = np.where(-impact < threshold, 0.0, restitution) if threshold > 0.0 else restitution
-    out = -e * impact
-    gap = np.where(on_path, out * back + 0.5 * g_n * back * back, 0.0)
-    velocity = out + g_n * back
-    resting = gap < 0.0
-    return np.where(resting, 0.0, gap), np.where(resting, 0.0, velocity)
 
 
 class WallStage(Stage):
@@ -78,7 +52,6 @@ class WallStage(Stage):
         dyn = s.dynamic
         gravity = ctx.effects.gravity
         threshold = ctx.effects.threshold(ctx.dt)
-        lost = lost_friction = 0.0
         for axis, plane, inward in self.walls.planes(ctx.dimensions):
             p, v = s.position[:, axis], s.velocity[:, axis]
             gap = inward * (p - plane) - s.radius
@@ -86,41 +59,48 @@ class WallStage(Stage):
             if not np.any(inside_wall):
                 continue
             index = np.flatnonzero(inside_wall)
-            before = mechanical(s, gravity, index)
             u1 = inward * v[index]
             hit_local = u1 < 0.0
             hit = index[hit_local]
-            ctx.stats.wall_collisions += int(hit.size)
-            if hit.size:
-                g_n = 0.0 if gravity is None else inward * float(gravity[axis])
-                own = None if s.restitution is None else s.restitution[hit]
-                e = combine(own, None, self.walls.restitution)
-                new_gap, new_u = reflect_on_plane(gap[hit], u1[hit_local], g_n, ctx.dt, e,
-                                                  threshold)
-                normal_impulse = (new_u - u1[hit_local]) / s.inv_mass[hit]
-                v[hit] = inward * new_u
-                p[hit] = plane + inward * (new_gap + s.radius[hit])
-            # Position projection back inside for the rest: no velocity change.
+            g_n = 0.0 if gravity is None else inward * float(gravity[axis])
             rest = index[~hit_local]
-            p[rest] = plane + inward * s.radius[rest]
-            after = mechanical(s, gravity, index)
-            lost += before - after
-            if self.friction is not None and hit.size:
-                lost_friction += self._friction(ctx, hit, axis, inward, normal_impulse)
-        ctx.stats.add_dissipated('walls', lost)
-        if self.friction is not None:
-            ctx.stats.add_dissipated('friction', lost_friction)
+            if rest.size:
+                # Position projection back inside, no velocity change: the lift
+                # from q < 0 (the depth past the plane) adds m g_n q of energy,
+                # booked as a loss of -m g_n q (<= 0 for a floor, g_n < 0).
+                ctx.book('walls', -g_n * gap[rest] / s.inv_mass[rest], rest)
+                p[rest] = plane + inward * s.radius[rest]
+            if not hit.size:
+                continue
+            ctx.stats.wall_collisions += int(hit.size)
+            e = wall_coefficient(s.restitution, hit, self.walls.restitution)
+            out = reflect_on_plane(gap[hit], u1[hit_local], g_n, ctx.dt, e, threshold)
+            mass = 1.0 / s.inv_mass[hit]
+            # What the plane delivered over the step (the impact, and the stop
+            # of a particle that comes to rest): it bounds the friction.
+            normal_impulse = mass * (out['velocity'] - u1[hit_local])
+            v[hit] = inward * out['velocity']
+            p[hit] = plane + inward * (out['gap'] + s.radius[hit])
+            ctx.book('walls', mass * (out['impact_loss_per_mass']
+                                      + out['settle_loss_per_mass']), hit)
+            tangential = 0.0
+            if self.friction is not None:
+                tangential = self._friction(ctx, hit, axis, inward, normal_impulse)
+            record_walls(ctx.impacts, ctx.time + ctx.dt - out['back'], s.position, hit, axis,
+                         plane, inward, normal_impulse, tangential, out['impact'])
 
     def _friction(self, ctx: StepContext, hit: np.ndarray, axis: int, inward: float,
-                  normal_impulse: np.ndarray) -> float:
-        """Apply Coulomb friction at wall impacts of one plane; return energy removed."""
+                  normal_impulse: np.ndarray) -> np.ndarray:
+        """Apply Coulomb friction at wall impacts of one plane; return its impulses."""
         s = ctx.state
         normal = np.zeros((hit.size, 3))
         normal[:, axis] = inward
-        own = None if s.friction is None else s.friction[hit]
-        mu = combine(own, None, self.friction)
-        return apply_wall_friction(s.velocity, s.angular_velocity, s.inv_mass, s.radius, hit,
-                                   normal, normal_impulse, mu, ctx.dimensions == 2)
+        mu = wall_coefficient(s.friction, hit, self.friction)
+        tangential, removed = apply_wall_friction(s.velocity, s.angular_velocity, s.inv_mass,
+                                                  s.radius, hit, normal, normal_impulse, mu,
+                                                  ctx.dimensions == 2)
+        ctx.book('friction', removed, hit)
+        return tangential
 
     def describe(self) -> str:
         """Say what the stage does."""
