@@ -129,6 +129,8 @@ class CommandInterface:
                              'parameter paused)')
         if node.failed is not None:
             raise SceneError(f'step: stepping stopped ({node.failed}); reset to go on')
+        # A subscriber that appeared since the last tick sees these steps' impacts too.
+        node.reports.follow_listeners(node.world)
         for done in range(count):
             try:
                 node.world.step(1)

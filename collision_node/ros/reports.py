@@ -48,11 +48,14 @@ class Reports:
 
     def publish_collisions(self, world: World, seconds: float, frame_id: str) -> None:
         """Publish the impacts since the last tick; have them recorded only while listened to."""
-        listening = self.pub_collisions.get_subscription_count() > 0
-        recording = world.impact_log is not None
-        if recording:
+        if world.impact_log is not None:
             impacts = world.take_impacts()
-            if listening:
+            if self.pub_collisions.get_subscription_count() > 0:
                 self.pub_collisions.publish(impact_cloud_bytes(impacts, seconds, frame_id))
-        if listening != recording:
+        self.follow_listeners(world)
+
+    def follow_listeners(self, world: World) -> None:
+        """Record impacts iff somebody subscribes (also called before a step request runs)."""
+        listening = self.pub_collisions.get_subscription_count() > 0
+        if listening != (world.impact_log is not None):
             world.record_impacts(listening)
