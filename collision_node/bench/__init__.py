@@ -20,6 +20,8 @@ SUBCOMMANDS: dict[str, str] = {
     'node': 'collision_node.bench.node',
     'effects': 'collision_node.bench.effects',
     'accuracy': 'collision_node.bench.accuracy',
+    'pile': 'collision_node.bench.pile',
+    'mixed': 'collision_node.bench.mixed',
 }
 
 
