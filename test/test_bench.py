@@ -45,3 +45,95 @@ def test_unknown_subcommand_exits_two(capsys):
         bench.main(['nonsense'])
     assert exit_info.value.code == 2
     assert "invalid choice: 'nonsense'" in capsys.readouterr().err
+
+
+def _table(out: str) -> list[list[str]]:
+    """Return the body rows of every Markdown table in ``out``, cells stripped."""
+    return [[cell.strip() for cell in line.strip('|').split('|')]
+            for line in out.splitlines()
+            if line.startswith('|') and not line.startswith('|--') and
+            not line.startswith('| run') and not line.startswith('| preset') and
+            not line.startswith('| large') and not line.startswith('| N ')]
+
+
+def test_throughput_fraction_sets_the_volume_fraction():
+    scene = gas_scene(2000, fraction=0.1)
+    side = scene['effects']['walls']['max'][0] * 2
+    volume = 2000 * 4.0 / 3.0 * math.pi * scene['generate'][0]['radius'] ** 3
+    assert volume / side ** 3 == pytest.approx(0.1, rel=1e-12)
+
+
+def test_pile_bench_rows_and_pymunk_missing_message(capsys, monkeypatch):
+    import sys
+    # A None entry makes ``import pymunk`` raise ImportError, installed or not.
+    monkeypatch.setitem(sys.modules, 'pymunk', None)
+    assert bench.main(['pile', '--steps', '3', '--presets', 'fast', 'exact',
+                       '--count3d', '60', '--steps3d', '2']) == 0
+    out = capsys.readouterr().out
+    assert 'pymunk not installed (pip install pymunk==7.x): comparison row skipped' in out
+    rows = _table(out)
+    fast, exact, pour = rows
+    assert fast[0] == 'fast' and fast[1] == '3' and float(fast[2]) > 0
+    # Discs poured from 0.5 m up are still falling after 3 steps: above the threshold.
+    assert float(fast[6]) > 0.164 and fast[7] == 'no'
+    assert exact[0] == 'exact' and 'cannot simulate friction' in exact[1]
+    assert pour[0] == 'balanced' and pour[1] == '2' and float(pour[4]) > 0
+
+
+def test_pile_quality_measures_overlap_and_speed():
+    from collision_node.bench.pile import pile_quality
+    import numpy as np
+    position = np.array([[0.1, 0.05], [0.18, 0.05], [1.0, 0.04]])
+    velocity = np.array([[0.0, 0.0], [0.3, 0.4], [0.0, 0.0]])
+    radius = np.full(3, 0.05)
+    quality = pile_quality(position, velocity, radius, np.array([0.0, 0.0, -np.inf]),
+                           np.array([1.6, 20.0, np.inf]), 2)
+    assert quality['overlap_pairs_r'] == pytest.approx(0.02 / 0.05)   # 0.1 - 0.08
+    assert quality['overlap_walls_r'] == pytest.approx(0.01 / 0.05)   # 0.04 above the floor
+    assert quality['fastest'] == pytest.approx(0.5)
+
+
+def test_mixed_bench_places_without_overlap_and_searches_exactly(capsys):
+    import numpy as np
+    from collision_node.bench.mixed import box_side, mixed_radii, place
+    radius = mixed_radii(500, 0.2, 10.0, seed=1)
+    assert np.count_nonzero(radius > 0.05) == 100
+    side = box_side(radius, 0.1)
+    position = place(radius, side, seed=2)
+    i, j = np.triu_indices(500, k=1)
+    gap = np.linalg.norm(position[i] - position[j], axis=1) - (radius[i] + radius[j])
+    assert gap.min() >= 0.0
+    assert np.all(position >= radius[:, None]) and np.all(position <= side - radius[:, None])
+    assert bench.main(['mixed', '--count', '300', '--shares', '0.1', '--steps', '2',
+                       '--warmup', '1', '--presets', 'fast']) == 0
+    rows = _table(capsys.readouterr().out)
+    assert [row[0] for row in rows[:2]] == ['0', '0.1'] and rows[0][4] == '1.00'
+    # The search alone finds exactly the real contacts of the static sets.
+    for row in rows[2:]:
+        assert row[4] == row[5]
+
+
+def test_apex_error_of_the_analytic_bounce_sequence():
+    from collision_node.bench.accuracy import BALL_RESTITUTION, apex_error
+    g, track = 9.81, [(1.1, 0.0)]
+    for k in range(1, 7):
+        # Just after the k-th bounce: 2 cm up, moving up toward the apex e^(2k) h.
+        apex = BALL_RESTITUTION ** (2 * k)
+        v = (2.0 * g * (apex - 0.02)) ** 0.5
+        track += [(0.3, -1.0), (0.12, v), (0.11 + apex, 0.0)]
+    assert apex_error(track) < 1e-12
+    track[5] = (0.12, track[5][1] * 1.01)           # second bounce 1 % too fast in speed
+    assert apex_error(track) == pytest.approx(
+        (1.01 ** 2 - 1) * (BALL_RESTITUTION ** 4 - 0.02), rel=1e-9)
+    assert apex_error(track[:7]) == 1.0            # two apexes only: the ball stopped early
+
+
+def test_accuracy_scenes_include_the_gravity_scenes():
+    from collision_node.bench.accuracy import plan, scenes
+    quick = scenes(quick=True)
+    assert quick['bouncing_ball']['effects']['gravity'] == [0.0, -9.81]
+    assert quick['pile']['effects']['friction'] == 0.5 and quick['pile']['duration'] == 2.0
+    pile_runs = [(accuracy, dt) for name, _, accuracy, dt, _ in plan(quick=True)
+                 if name == 'pile']
+    # No exact reference (event mode refuses friction), no dt sweep.
+    assert pile_runs == [(p, 1 / 120) for p in ('fast', 'balanced', 'accurate')]

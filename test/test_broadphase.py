@@ -95,3 +95,102 @@ def test_candidate_pairs_with_large_particles_match_brute_force():
     i, j = candidate_pairs(position, radius)
     assert brute_force_overlaps(position, radius) <= set(zip(i.tolist(), j.tolist()))
     assert np.all(i < j) and np.all(np.diff(i * 400 + j) > 0)
+
+
+def near_pairs(position: np.ndarray, reach: np.ndarray) -> set:
+    """Return every pair (i < j) with |p_i - p_j| <= reach_i + reach_j, by brute force."""
+    i, j = np.triu_indices(position.shape[0], k=1)
+    distance = np.linalg.norm(position[i] - position[j], axis=1)
+    hit = distance <= reach[i] + reach[j]
+    return set(zip(i[hit].tolist(), j[hit].tolist()))
+
+
+def mixed_sizes(rng, count: int, dimensions: int, large_share: float, factor: float,
+                fraction: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """Return positions and radii: ``large_share`` of them ``factor`` times larger.
+
+    The box is sized for the given volume (area) fraction, so that many
+    pairs touch and the brute-force comparison checks something.
+    """
+    radius = rng.uniform(0.9, 1.1, count) * 0.05
+    radius[rng.random(count) < large_share] *= factor
+    unit = np.pi if dimensions == 2 else 4.0 / 3.0 * np.pi
+    side = (float(np.sum(unit * radius ** dimensions)) / fraction) ** (1.0 / dimensions)
+    return rng.uniform(0.0, side, (count, dimensions)), radius
+
+
+@pytest.mark.parametrize('dimensions', [2, 3])
+@pytest.mark.parametrize('large_share, factor', [(0.1, 5.0), (0.1, 10.0), (0.2, 10.0),
+                                                 (0.45, 5.0), (0.45, 10.0)])
+def test_candidate_pairs_of_mixed_sizes_equal_brute_force(dimensions, large_share, factor):
+    rng = np.random.default_rng(int(100 * large_share + factor + 7 * dimensions))
+    position, radius = mixed_sizes(rng, 700, dimensions, large_share, factor, fraction=0.3)
+    # A margin on top of the radius, as the Verlet list and the swept contacts add.
+    reach = radius * rng.uniform(1.0, 1.2, radius.size)
+    i, j = candidate_pairs(position, reach)
+    expected = near_pairs(position, reach)
+    assert len(expected) > 200
+    assert set(zip(i.tolist(), j.tolist())) == expected
+    assert np.all(i < j) and np.all(np.diff(i * radius.size + j) > 0)
+
+
+def test_size_classes_keep_reaches_within_a_factor_of_two():
+    rng = np.random.default_rng(3)
+    reach = np.exp(rng.uniform(np.log(1e-3), np.log(2.0), 1000))
+    reach[:3] = [0.0, 1e-3, 2.0]
+    classes = broadphase_module.size_classes(reach)
+    assert np.array_equal(np.sort(np.concatenate(classes)), np.arange(1000))
+    assert len(classes) == 11      # log2(2 / 1e-3) = 10.97: levels 0 to 10
+    for members in classes:
+        assert np.all(np.diff(members) > 0)
+        positive = reach[members][reach[members] > 0]
+        assert positive.max() < 2.0 * positive.min()
+    # One size (a gas) is one class: a single tree, as before size classes.
+    assert len(broadphase_module.size_classes(np.full(50, 0.05))) == 1
+
+
+def test_mixed_sizes_stay_near_linear_in_pair_count():
+    """45 % of the particles at 5x the radius: candidates stay a few per real contact.
+
+    Pairing the large particles all-to-all (as the broadphase did) gave
+    6.5 million candidates for 8,000 such particles; the Verlet list with
+    its skin must stay within a small factor of the real contacts.
+    """
+    rng = np.random.default_rng(11)
+    count = 4000
+    position, radius = mixed_sizes(rng, count, 3, 0.45, 5.0)
+    contacts = near_pairs(position, radius)
+    i, j = candidate_pairs(position, radius)
+    assert set(zip(i.tolist(), j.tolist())) == contacts and len(contacts) > 500
+    stage = BroadphaseStage()
+    velocity = rng.normal(size=(count, 3))
+    i, j = stage.find(position, radius, velocity, np.ones(count), 0.01)
+    assert stage.searches == 1
+    assert contacts <= set(zip(i.tolist(), j.tolist()))
+    assert i.size < 3 * len(contacts)
+    # All-to-all pairing of the large ones alone would give ~ (0.45 n)^2 / 2 pairs.
+    assert i.size < 0.01 * (0.45 * count) ** 2 / 2
+
+
+def test_verlet_list_with_mixed_sizes_misses_no_contact():
+    rng = np.random.default_rng(8)
+    count = 400
+    radius = np.where(rng.random(count) < 0.2, 0.3, 0.03)
+    speeds = np.where(rng.random(count) < 0.01, 15.0, 1.0)
+    direction = rng.normal(size=(count, 3))
+    velocity = direction / np.linalg.norm(direction, axis=1)[:, None] * speeds[:, None]
+    particles = [{'position': rng.uniform(-2.5, 2.5, 3).tolist(),
+                  'velocity': velocity[k].tolist(), 'radius': float(radius[k]), 'mass': 1.0}
+                 for k in range(count)]
+    world = World(parse_scene({'dt': 0.005, 'particles': particles, 'accuracy': 'fast',
+                               'effects': {'walls': {'min': [-3, -3, -3], 'max': [3, 3, 3]}}},
+                              'mixed'))
+    at = [isinstance(stage, BroadphaseStage) for stage in world.pipeline.stages].index(True)
+    broadphase = world.pipeline.stages[at]
+    check = CheckCandidates()
+    world.pipeline.stages.insert(at + 1, check)
+    energy = world.kinetic_energy()
+    world.step(100)
+    assert 1 < broadphase.searches < 100 and broadphase.mover_updates > 0
+    assert check.overlaps_seen > 100
+    assert world.kinetic_energy() == pytest.approx(energy, rel=1e-12)

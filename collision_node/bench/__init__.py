@@ -22,6 +22,8 @@ SUBCOMMANDS: dict[str, str] = {
     'accuracy': 'collision_node.bench.accuracy',
     'node-load': 'collision_node.bench.node_load',
     'commands': 'collision_node.bench.commands',
+    'pile': 'collision_node.bench.pile',
+    'mixed': 'collision_node.bench.mixed',
 }
 
 

@@ -14,6 +14,14 @@ momentum error against the exact reference, missed collisions (pairs that
 moved straight through a step, so received no impulse, yet came closer
 than r1 + r2 in between; wall tunnelling likewise), maximum penetration, the largest position error
 against the exact event-driven run at the end, and the cradle's outcome.
+
+Two scenes under gravity show what the presets buy there: a ball dropped
+on a floor with e = 0.8 (error: the largest deviation of its first five
+apexes from the analytic e^(2k) h, relative to the drop h) and the shipped
+``pile`` (240 discs, friction; error: the settled pile's deepest overlap
+over the radius, and whether the fastest disc is below the restitution
+threshold, i.e. at rest). The pile runs only at its own dt and has no
+exact reference (event mode refuses friction); ``--quick`` shortens it to 2 s.
 """
 
 from __future__ import annotations
@@ -65,6 +73,53 @@ def _billiards() -> dict:
             'particles': balls}
 
 
+# The bouncing ball: a ball of r = 10 cm dropped with its bottom BALL_DROP above
+# the floor; with restitution e its k-th apex is e^(2k) BALL_DROP (analytic).
+BALL_DROP = 1.0
+BALL_RESTITUTION = 0.8
+BALL_APEXES = 5
+# Scenes that run only at their own dt (no dt sweep, no batched run): the
+# pile's 480 steps cost seconds each under every preset, and batched
+# ordering falls back to sequential under friction anyway.
+SINGLE_DT = ('pile',)
+
+
+def _bouncing_ball() -> dict:
+    """Return one ball dropped on a floor (e = 0.8) under gravity, 2-D, 3 s."""
+    ball = {'position': [0.0, BALL_DROP + 0.1], 'radius': 0.1, 'mass': 0.5}
+    return {'dimensions': 2, 'dt': 1 / 240, 'duration': 3.0, 'particles': [ball],
+            'effects': {'gravity': [0.0, -9.81],
+                        'walls': {'min': [None, 0.0], 'restitution': BALL_RESTITUTION}}}
+
+
+def _pile(quick: bool) -> dict:
+    """Return the shipped pile scene (240 discs poured under gravity, friction)."""
+    from ..physics.scene import load_yaml, resolve_scene_path
+    mapping = load_yaml(resolve_scene_path('pile').read_text(encoding='utf-8'))
+    mapping.pop('name', None)
+    if quick:
+        mapping['duration'] = 2.0
+    return mapping
+
+
+def apex_error(track: list, gravity: float = 9.81) -> float:
+    """Return max_k |apex_k - e^(2k) h| / h over the first BALL_APEXES apexes.
+
+    ``track`` holds the ball's (centre height, vertical velocity) after
+    every step, the drop first. After each bounce (the vertical velocity
+    turns upward) the apex follows from the first state on the way up,
+    y + v^2 / (2 g): exact for free flight, so the step's sampling does not
+    count as error, only the bounce does. A missing apex (the ball came to
+    rest early) counts as an error of 1.
+    """
+    y, v = np.asarray(track, dtype=float).T
+    up = np.flatnonzero((v[1:] > 0.0) & (v[:-1] <= 0.0)) + 1
+    apex = (y[up] + v[up] ** 2 / (2.0 * gravity) - 0.1)[:BALL_APEXES]
+    expected = BALL_DROP * BALL_RESTITUTION ** (2 * np.arange(1, apex.size + 1))
+    worst = float(np.max(np.abs(apex - expected))) / BALL_DROP if apex.size else 1.0
+    return worst if apex.size == BALL_APEXES else max(worst, 1.0)
+
+
 def scenes(quick: bool) -> dict[str, dict]:
     """Return the benchmark's scenes as scene mappings (``quick``: smaller, shorter)."""
     cradle = [{'position': [0.125 * k, 0.0], 'radius': 0.0625, 'mass': 0.5}
@@ -83,12 +138,14 @@ def scenes(quick: bool) -> dict[str, dict]:
         'gas_1k': _gas(300 if quick else 1000, 0.01, 1.0, 0.01, 2.0 if quick else 10.0, 1),
         'billiards_break': _billiards(),
         'gas_fast': _gas(300, 0.01, 8.0, 0.01, 0.5 if quick else 1.0, 2),
+        'bouncing_ball': _bouncing_ball(),
+        'pile': _pile(quick),
     }
     if quick:
         out['billiards_break']['duration'] = 1.0
-    for mapping in out.values():
+    for name, mapping in out.items():
         # Every dt of the sweep must land on the same end time as the reference.
-        longest = max(DT_FACTORS) * mapping['dt']
+        longest = (1.0 if name in SINGLE_DT else max(DT_FACTORS)) * mapping['dt']
         mapping['duration'] = math.ceil(mapping['duration'] / longest - 1e-9) * longest
     return out
 
@@ -110,6 +167,7 @@ def run_case(name: str, mapping: dict, accuracy: Any, dt: float, check: bool = T
     wall_seconds = cpu_seconds = 0.0
     missed_pairs = missed_walls = 0
     penetration = 0.0
+    heights = [(float(world.state.position[0, 1]), float(world.state.velocity[0, 1]))]
     for _ in range(steps):
         before = world.state.copy() if check else None
         start, cpu_start = time.perf_counter(), time.process_time()
@@ -121,8 +179,10 @@ def run_case(name: str, mapping: dict, accuracy: Any, dt: float, check: bool = T
             missed_pairs += pairs
             missed_walls += crossings
             penetration = max(penetration, end_penetration(world.state))
+        heights.append((float(world.state.position[0, 1]), float(world.state.velocity[0, 1])))
     energy1 = world.kinetic_energy()
     s = world.state
+    measures = gravity_measures(name, world, heights)
     return {
         'scene': name,
         'accuracy': accuracy if isinstance(accuracy, str) else json.dumps(accuracy),
@@ -133,7 +193,9 @@ def run_case(name: str, mapping: dict, accuracy: Any, dt: float, check: bool = T
         'wall_s': wall_seconds,
         'wall_s_per_sim_s': wall_seconds / (steps * dt),
         'cpu_s_per_sim_s': cpu_seconds / (steps * dt),
-        'energy_rel_error': abs(energy1 - energy0) / energy0 if energy0 else 0.0,
+        # Kinetic energy is no conserved measure under gravity (and these scenes dissipate).
+        'energy_rel_error': None if world.scene.effects.gravity is not None else
+        abs(energy1 - energy0) / energy0 if energy0 else 0.0,
         'momentum': world.momentum().tolist(),
         'momentum_scale': float(np.sum(np.linalg.norm(s.velocity, axis=1) / s.inv_mass)),
         'momentum0': momentum0.tolist(),
@@ -145,7 +207,31 @@ def run_case(name: str, mapping: dict, accuracy: Any, dt: float, check: bool = T
         'final_position': s.position.tolist(),
         'final_velocity': s.velocity.tolist(),
         'radius_min': float(s.radius.min()),
+        **measures,
     }
+
+
+def gravity_measures(name: str, world: World, heights: list) -> dict:
+    """Return the error measures of the scenes under gravity (None elsewhere).
+
+    ``apex_error``: the bouncing ball's apexes against e^(2k) h (relative to
+    h). ``pile_overlap_r``: the settled pile's deepest overlap, between two
+    discs or with a wall, over the radius. ``fastest``: the fastest
+    particle's speed at the end, and ``threshold`` the restitution
+    threshold it must be below for the pile to be at rest.
+    """
+    out = {'apex_error': None, 'pile_overlap_r': None, 'fastest': None, 'threshold': None}
+    if name == 'bouncing_ball':
+        out['apex_error'] = apex_error(heights)
+    elif name == 'pile':
+        from .pile import pile_quality
+        s, walls = world.state, world.scene.effects.walls
+        quality = pile_quality(s.position, s.velocity, s.radius, walls.low, walls.high,
+                               world.scene.dimensions)
+        out['pile_overlap_r'] = max(quality['overlap_pairs_r'], quality['overlap_walls_r'])
+        out['fastest'] = quality['fastest']
+        out['threshold'] = world.scene.effects.threshold(world.dt)
+    return out
 
 
 def plan(quick: bool) -> list[tuple[str, dict, Any, float, bool]]:
@@ -153,6 +239,10 @@ def plan(quick: bool) -> list[tuple[str, dict, Any, float, bool]]:
     runs = []
     for name, mapping in scenes(quick).items():
         base = mapping['dt']
+        if name in SINGLE_DT:
+            # exact (event mode) refuses friction: the pile has no reference run.
+            runs.extend((name, mapping, preset, base, True) for preset in PRESET_ORDER[:3])
+            continue
         runs.append((name, mapping, 'exact', base, True))
         for preset in PRESET_ORDER[:3]:
             for factor in DT_FACTORS:
@@ -204,6 +294,10 @@ def compare(results: list[dict]) -> None:
         r['time_vs_fast'] = r['cpu_s_per_sim_s'] / base['cpu_s_per_sim_s'] if base else None
         if r['scene'] == 'cradle_5':
             r['outcome'] = '(' + ', '.join(f'{v[0]:.3g}' for v in r['final_velocity']) + ')'
+        elif r.get('fastest') is not None:
+            at_rest = 'at rest' if r['fastest'] < r['threshold'] else 'moving'
+            r['outcome'] = (f'{at_rest}: fastest {r["fastest"]:.3g} m/s '
+                            f'(threshold {r["threshold"]:.3g})')
         else:
             r['outcome'] = ''
 
@@ -223,7 +317,8 @@ COLUMNS = [('scene', 'scene'), ('accuracy', 'accuracy'), ('dt', 'dt s'),
            ('momentum_error', 'momentum err'), ('missed_pairs', 'missed pairs'),
            ('missed_walls', 'wall tunnels'), ('max_penetration', 'max penetration m'),
            ('position_error', 'position err m'), ('collisions', 'impacts'),
-           ('outcome', 'cradle')]
+           ('apex_error', 'ball apex rel err'), ('pile_overlap_r', 'pile overlap / r'),
+           ('outcome', 'cradle / pile rest')]
 
 
 def _cell(value: Any) -> str:
@@ -269,6 +364,17 @@ def pareto(points: list[tuple[float, float]]) -> list[int]:
     return front
 
 
+def _plot_value(r: dict, key: str) -> Optional[float]:
+    """Return the error a plot row shows for run ``r`` (None: not measured)."""
+    if key == 'missed':
+        if r['missed_pairs'] is None:
+            return None
+        return (r['missed_pairs'] or 0) + (r['missed_walls'] or 0)
+    if key == 'gravity':
+        return r['apex_error'] if r.get('apex_error') is not None else r.get('pile_overlap_r')
+    return r.get(key)
+
+
 def plot(results: list[dict], path: Path) -> None:
     """Log-log error against time cost, one panel per scene and error, Pareto front marked."""
     import matplotlib
@@ -279,20 +385,32 @@ def plot(results: list[dict], path: Path) -> None:
     floor = 1e-17
     errors = [('position_error', 'position error vs exact (m)'),
               ('energy_rel_error', 'relative energy error'),
-              ('missed', 'missed collisions (pairs + walls)')]
+              ('missed', 'missed collisions (pairs + walls)'),
+              ('gravity', 'ball: apex rel. error;\npile: deepest overlap / r')]
     colours = {'fast': 'tab:red', 'balanced': 'tab:blue', 'accurate': 'tab:green',
                'exact': 'black'}
-    fig, axes = plt.subplots(len(errors), len(names), figsize=(3.4 * len(names), 9.0),
+    fig, axes = plt.subplots(len(errors), len(names), figsize=(3.4 * len(names), 12.0),
                              squeeze=False)
     for col, name in enumerate(names):
         runs = [r for r in results if r['scene'] == name]
         for row, (key, label) in enumerate(errors):
             ax = axes[row][col]
-            values = [(r['missed_pairs'] or 0) + (r['missed_walls'] or 0) if key == 'missed'
-                      else r[key] or 0.0 for r in runs]
+            values = [_plot_value(r, key) for r in runs]
+            shown = [(r, v) for r, v in zip(runs, values) if v is not None]
+            if row == 0:
+                ax.set_title(name, fontsize=9)
+            if col == 0:
+                ax.set_ylabel(label, fontsize=8)
+            if not shown:
+                # No such measure for this scene (no exact reference, not a gravity scene).
+                ax.text(0.5, 0.5, 'n/a', ha='center', va='center', transform=ax.transAxes)
+                ax.set_xticks([])
+                ax.set_yticks([])
+                continue
+            runs_shown = [r for r, _ in shown]
             low = 0.5 if key == 'missed' else floor
-            pts = [(r['wall_s_per_sim_s'], max(value, low)) for r, value in zip(runs, values)]
-            for r, (x, y) in zip(runs, pts):
+            pts = [(r['wall_s_per_sim_s'], max(value, low)) for r, value in shown]
+            for r, (x, y) in zip(runs_shown, pts):
                 preset = r['accuracy'] if r['accuracy'] in colours else 'fast'
                 marker = 'o' if r['accuracy'] in colours else 'x'
                 ax.scatter(x, y, c=colours[preset], marker=marker, s=22, zorder=3)
@@ -307,10 +425,6 @@ def plot(results: list[dict], path: Path) -> None:
             ax.set_xscale('log')
             ax.set_yscale('log')
             ax.grid(True, which='major', lw=0.3)
-            if row == 0:
-                ax.set_title(name, fontsize=9)
-            if col == 0:
-                ax.set_ylabel(label, fontsize=8)
             if row == len(errors) - 1:
                 ax.set_xlabel('wall s per simulated s', fontsize=8)
             ax.tick_params(labelsize=6)

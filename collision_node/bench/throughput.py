@@ -3,7 +3,8 @@
 ``python -m collision_node.bench throughput`` builds a gas of N particles
 (radius 0.05 m, mass 1 kg, speed 1 m/s, e = 1) in a walled cube whose side
 grows as N^(1/3), so the number density (and the collision rate per
-particle) is the same for every N, as in ``scenes/gas_10k.yaml``. It times
+particle) is the same for every N, as in ``scenes/gas_10k.yaml`` (4.2 %
+volume fraction), or ``--fraction`` (e.g. 0.1) if given. It times
 whole world steps (every stage of the pipeline, walls included) and
 prints a Markdown table with the growth exponent between successive N:
 log(t2 / t1) / log(N2 / N1) for the wall time per step, 1.0 being linear.
@@ -18,6 +19,7 @@ import math
 import os
 import platform
 import time
+from typing import Optional
 
 from ..physics.scene import parse_scene
 from ..physics.world import World
@@ -30,9 +32,15 @@ RADIUS = 0.05
 DT = 1.0 / 240.0
 
 
-def gas_scene(count: int, seed: int = 7) -> dict:
-    """Return the scene mapping of a walled 3-D gas of ``count`` particles."""
-    half = 0.5 * REFERENCE_SIDE * (count / REFERENCE_COUNT) ** (1.0 / 3.0)
+def gas_scene(count: int, seed: int = 7, fraction: Optional[float] = None) -> dict:
+    """Return the scene mapping of a walled 3-D gas of ``count`` particles.
+
+    The density is that of gas_10k, or the volume ``fraction`` if given.
+    """
+    if fraction is None:
+        half = 0.5 * REFERENCE_SIDE * (count / REFERENCE_COUNT) ** (1.0 / 3.0)
+    else:
+        half = 0.5 * (count * 4.0 / 3.0 * math.pi * RADIUS ** 3 / fraction) ** (1.0 / 3.0)
     box = {'min': [-half] * 3, 'max': [half] * 3}
     return {
         'name': f'gas_{count}', 'dimensions': 3, 'dt': DT,
@@ -42,9 +50,11 @@ def gas_scene(count: int, seed: int = 7) -> dict:
     }
 
 
-def time_gas(count: int, steps: int, warmup: int, accuracy: str = 'balanced') -> dict:
+def time_gas(count: int, steps: int, warmup: int, accuracy: str = 'balanced',
+             fraction: Optional[float] = None) -> dict:
     """Step a gas of ``count`` particles; return timing and conservation numbers."""
-    world = World(parse_scene(dict(gas_scene(count), accuracy=accuracy), f'gas_{count}'))
+    world = World(parse_scene(dict(gas_scene(count, fraction=fraction), accuracy=accuracy),
+                              f'gas_{count}'))
     world.step(warmup)
     energy_start = world.kinetic_energy()
     collisions_start = world.stats.collisions
@@ -84,16 +94,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--warmup', type=int, default=10, help='untimed steps first')
     parser.add_argument('--accuracy', default='balanced',
                         help='accuracy preset of the gas (default: balanced, the default preset)')
+    parser.add_argument('--fraction', type=float, default=None,
+                        help='volume fraction of the gas (default: the density of gas_10k, '
+                             '4.2 %%)')
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark and print the Markdown table."""
-    rows = [time_gas(n, steps_for(n, args.work), args.warmup, args.accuracy)
+    if args.fraction is not None and not 0.0 < args.fraction <= 0.3:
+        print(f'bench throughput: --fraction must be in (0, 0.3], got {args.fraction:g}')
+        return 2
+    rows = [time_gas(n, steps_for(n, args.work), args.warmup, args.accuracy, args.fraction)
             for n in sorted(args.counts)]
     load = os.getloadavg()
     machine = platform.processor() or platform.machine()
-    print(f'3-D elastic gas in walls, radius {RADIUS} m, {REFERENCE_COUNT} per '
-          f'{REFERENCE_SIDE:g} m cube, dt = 1/240 s, accuracy {args.accuracy}; '
+    density = (f'{REFERENCE_COUNT} per {REFERENCE_SIDE:g} m cube' if args.fraction is None
+               else f'volume fraction {args.fraction:g}')
+    print(f'3-D elastic gas in walls, radius {RADIUS} m, {density}, '
+          f'dt = 1/240 s, accuracy {args.accuracy}; '
           f'{machine}, {os.cpu_count()} cores, '
           f'load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}')
     print()

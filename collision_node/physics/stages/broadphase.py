@@ -1,10 +1,17 @@
 """Broadphase: candidate pairs whose spheres may overlap.
 
-A k-d tree (scipy's cKDTree, C code) finds all pairs within twice the
-largest radius in O(n log n); per-step cost grows about linearly with the
-particle count. Particles much larger than the typical one would widen
-that search radius for everybody, so they are split off and queried
-against the tree of the small ones with their own radius.
+Particles are sorted into size classes by their reach (radius plus any
+margin): class k holds reaches in [m * 2^k, m * 2^(k+1)), m the smallest
+reach. Each class gets a k-d tree (scipy's cKDTree, C code). Pairs inside
+a class come from the tree's own pair search within twice the class's
+largest reach; pairs between two classes from a dual-tree search of the two
+trees within the sum of their largest reaches. Within a class reaches
+differ by less than a factor of two, so these searches find only a bounded
+multiple of the pairs that really are near, whatever the mix of sizes:
+ten-times-larger particles are never paired all-to-all, and a small
+particle is never searched with a large one's reach. Every pair found is
+then checked against its own reach_i + reach_j, so the result is exactly
+the set of near pairs. Per-step cost grows about linearly with the count.
 
 The stage does not search every step. It keeps a Verlet list: the pairs
 within r_i + r_j + skin at the last search, valid as long as no two
@@ -12,14 +19,15 @@ particles have together moved more than the skin since (two particles
 each moved at most skin/2 cannot have closed a gap larger than the skin).
 The check uses the actual positions, so it covers drift, separation, walls
 and any other stage. The few fast particles that moved more than skin/2
-("movers") are queried on their own against the tree of the last search
-instead of forcing a full search; only when movers become common is the
-tree rebuilt. The result is exactly the set a fresh search would need.
+("movers") are queried on their own against the class trees of the last
+search instead of forcing a full search; only when movers become common
+is the tree rebuilt. The result is exactly the set a fresh search would need.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from itertools import chain
 from typing import Optional
 
 import numpy as np
@@ -27,10 +35,12 @@ from scipy.spatial import cKDTree
 
 from ..step import Stage, StepContext
 
-# A particle whose radius exceeds this multiple of the median is "large":
-# its pairs are found by a query of its own instead of widening the
-# shared search radius.
-LARGE_RADIUS_FACTOR = 4.0
+# Reaches within one size class differ by less than this factor: the
+# searches of a class overshoot by at most this ratio in distance.
+CLASS_RATIO = 2.0
+# Query radii are widened by this relative slack so that rounding in the
+# tree's distance never drops a pair the exact check below would keep.
+QUERY_SLACK = 1e-9
 # Skin of the Verlet list: about SKIN_STEPS steps of travel at the rms speed,
 # at most SKIN_MAX_RADII median radii (a wider skin costs more pairs than
 # the searches it saves), at least SKIN_MIN_RADII of them.
@@ -47,56 +57,92 @@ _EMPTY = np.zeros(0, dtype=np.int64)
 
 
 @dataclass
+class SizeClass:
+    """The particles of one size class and the k-d tree of their positions."""
+
+    index: np.ndarray                   # particle indices, ascending
+    tree: cKDTree                       # tree of position[index]
+    max_reach: float                    # largest reach in the class
+
+
+@dataclass
 class PairSearch:
-    """One k-d tree search: its pairs and what a later mover query needs."""
+    """One search: its pairs and the class trees a later mover query needs."""
 
     i: np.ndarray
     j: np.ndarray
-    small: np.ndarray                   # indices of the particles in the tree
-    large: np.ndarray                   # indices of the large particles
-    tree: Optional[cKDTree]             # tree of position[small] (None if < 2)
+    classes: list = field(default_factory=list)     # SizeClass, smallest reach first
+
+
+def size_classes(reach: np.ndarray) -> list[np.ndarray]:
+    """Split particle indices into classes whose reaches differ by < CLASS_RATIO.
+
+    Class k holds reaches in [m * CLASS_RATIO^k, m * CLASS_RATIO^(k+1)),
+    m the smallest positive reach (reaches of 0 join the first class).
+    Returns the non-empty classes, smallest reach first, indices ascending.
+    """
+    positive = reach[reach > 0.0]
+    if positive.size == 0:
+        return [np.arange(reach.shape[0])]
+    smallest = float(positive.min())
+    with np.errstate(divide='ignore'):
+        level = np.floor(np.log(np.maximum(reach, smallest) / smallest)
+                         / np.log(CLASS_RATIO)).astype(np.int64)
+    if level.max() == 0:
+        return [np.arange(reach.shape[0])]
+    order = np.argsort(level, kind='stable')           # ascending index within a level
+    bounds = np.flatnonzero(np.diff(level[order])) + 1
+    return np.split(order, bounds)
+
+
+def _near(position_a: np.ndarray, position_b: np.ndarray, limit: np.ndarray) -> np.ndarray:
+    """Return the mask |a - b| <= limit, pair by pair (squares, a little generous).
+
+    Offsets so small that their squares underflow pass, as in the
+    narrowphase's prefilter: the exact contact test comes later.
+    """
+    offset = position_a - position_b
+    return np.einsum('ij,ij->i', offset, offset) <= limit * limit * (1.0 + QUERY_SLACK)
 
 
 def search_pairs(position: np.ndarray, reach: np.ndarray) -> PairSearch:
-    """Search all pairs with |p_i - p_j| <= reach_i + reach_j (a superset of them)."""
+    """Search all pairs with |p_i - p_j| <= reach_i + reach_j, exactly those."""
     n = position.shape[0]
     if n < 2:
-        return PairSearch(_EMPTY, _EMPTY, np.arange(n), _EMPTY, None)
-    large = reach > LARGE_RADIUS_FACTOR * _upper_median(reach)
-    small_idx = np.flatnonzero(~large)
-    large_idx = np.flatnonzero(large)
+        return PairSearch(_EMPTY, _EMPTY, [])
+    classes = [SizeClass(index, cKDTree(position[index]), float(reach[index].max()))
+               for index in size_classes(reach)]
     parts_i, parts_j = [], []
-    tree = None
-    if small_idx.size:
-        tree = cKDTree(position[small_idx])
-    if small_idx.size >= 2:
-        pairs = tree.query_pairs(2.0 * float(reach[small_idx].max()), output_type='ndarray')
-        parts_i.append(small_idx[pairs[:, 0]])
-        parts_j.append(small_idx[pairs[:, 1]])
-    if large_idx.size:
-        # Large against large: few by construction, so all pairs.
-        a, b = np.triu_indices(large_idx.size, k=1)
-        parts_i.append(large_idx[a])
-        parts_j.append(large_idx[b])
-        if small_idx.size:
-            max_small = float(reach[small_idx].max())
-            hits = tree.query_ball_point(position[large_idx], reach[large_idx] + max_small)
-            partner_i, partner_j = _flatten_hits(large_idx, hits)
-            parts_i.append(partner_i)
-            parts_j.append(small_idx[partner_j])
-    # Tree pairs, large-large and large-small pairs are disjoint sets of distinct pairs.
-    i, j = _sorted_unique_pairs(parts_i, parts_j, n, repeats=False)
-    return PairSearch(i, j, small_idx, large_idx, tree)
+    for at, own in enumerate(classes):
+        if own.index.size >= 2:
+            pairs = own.tree.query_pairs(2.0 * own.max_reach * (1.0 + QUERY_SLACK),
+                                         output_type='ndarray')
+            parts_i.append(own.index[pairs[:, 0]])
+            parts_j.append(own.index[pairs[:, 1]])
+        for other in classes[at + 1:]:
+            # Dual-tree search between two classes: each side searched with
+            # its own class's reach, never the larger class's for both.
+            found = own.tree.sparse_distance_matrix(
+                other.tree, (own.max_reach + other.max_reach) * (1.0 + QUERY_SLACK),
+                output_type='ndarray')
+            parts_i.append(own.index[found['i']])
+            parts_j.append(other.index[found['j']])
+    if not parts_i:
+        return PairSearch(_EMPTY, _EMPTY, classes)
+    i, j = np.concatenate(parts_i), np.concatenate(parts_j)
+    keep = _near(position[i], position[j], reach[i] + reach[j])
+    i, j = _sorted_unique_pairs([i[keep]], [j[keep]], n, repeats=False)
+    return PairSearch(i, j, classes)
 
 
 def candidate_pairs(position: np.ndarray, reach: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Return index arrays (i < j) of pairs with |p_i - p_j| <= reach_i + reach_j.
+    """Return index arrays (i < j) of the pairs with |p_i - p_j| <= reach_i + reach_j.
 
     ``reach`` is each particle's radius plus any margin (for example the
     distance it may travel in a step). Pairs come sorted by (i, j) so that
-    every later stage sees them in a deterministic order. The result may
-    hold more pairs than that (everything a k-d tree search within twice
-    the largest small reach finds); the narrowphase keeps the real contacts.
+    every later stage sees them in a deterministic order. The set is exact
+    up to a relative slack of 1e-9 on the reach (and offsets whose squares
+    underflow); the narrowphase keeps the real contacts.
     """
     search = search_pairs(position, reach)
     return search.i, search.j
@@ -109,11 +155,15 @@ def _upper_median(values: np.ndarray) -> float:
 
 
 def _flatten_hits(queried: np.ndarray, hits) -> tuple[np.ndarray, np.ndarray]:
-    """Turn query_ball_point's list of index lists into two index arrays."""
-    counts = np.fromiter((len(h) for h in hits), dtype=np.int64, count=len(hits))
-    if not counts.sum():
+    """Turn query_ball_point's list of index lists into two index arrays.
+
+    ``map(len, ...)`` and ``chain`` iterate in C: no Python loop per particle.
+    """
+    counts = np.fromiter(map(len, hits), dtype=np.int64, count=len(hits))
+    total = int(counts.sum())
+    if not total:
         return _EMPTY, _EMPTY
-    found = np.concatenate([np.asarray(h, dtype=np.int64) for h in hits if h])
+    found = np.fromiter(chain.from_iterable(hits), dtype=np.int64, count=total)
     return np.repeat(queried, counts), found
 
 
@@ -241,23 +291,23 @@ class BroadphaseStage(Stage):
                           movers: np.ndarray, extra: np.ndarray) -> np.ndarray:
         """Return the listed pair keys plus every pair a mover may now overlap."""
         n = position.shape[0]
-        search = self._search
         parts_i, parts_j = [], []
-        if search.tree is not None:
+        mover_reach = radius[movers] + extra[movers] + self._half_skin
+        for size_class in self._search.classes:
             # A mover against a particle that moved <= skin/2: that particle's
             # listed position is within r_i + r_j + skin/2 of the mover now.
-            max_small = float(radius[search.small].max())
             # With an allowance e_j <= skin/2 - displacement_j for non-movers,
             # the same bound holds with the mover's own e added.
-            hits = search.tree.query_ball_point(
-                position[movers], radius[movers] + extra[movers] + max_small + self._half_skin)
-            mover_i, found = _flatten_hits(movers, hits)
-            parts_i.append(mover_i)
-            parts_j.append(search.small[found])
-        if search.large.size:
-            # Movers against the (few) large particles: all pairs.
-            parts_i.append(np.repeat(movers, search.large.size))
-            parts_j.append(np.tile(search.large, movers.size))
+            listed = size_class.index
+            hits = size_class.tree.query_ball_point(
+                position[movers],
+                (mover_reach + float(radius[listed].max())) * (1.0 + QUERY_SLACK))
+            local, found = _flatten_hits(np.arange(movers.size), hits)
+            mover_i, partner = movers[local], listed[found]
+            keep = _near(position[mover_i], self._built_position[partner],
+                         mover_reach[local] + radius[partner])
+            parts_i.append(mover_i[keep])
+            parts_j.append(partner[keep])
         # Movers against movers, at their current positions (all pairs if few).
         if movers.size <= ALL_PAIRS_UP_TO:
             between_i, between_j = np.triu_indices(movers.size, k=1)
@@ -276,5 +326,5 @@ class BroadphaseStage(Stage):
 
     def describe(self) -> str:
         """Say what the stage does."""
-        return ('k-d tree pairs within r_i + r_j + skin, reused while no particle pair moved '
-                'a skin (fast movers queried alone; large particles queried on their own)')
+        return ('k-d tree per size class, pairs within r_i + r_j + skin, reused while no '
+                'particle pair moved a skin (fast movers queried alone)')
