@@ -191,16 +191,17 @@ def test_collisions_topic_carries_the_cores_impacts(head_on_scene):
 
 
 def test_viewer_prints_the_impact(head_on_scene):
-    # The node waits, paused, until the viewer subscribes, so a slow viewer start
-    # cannot miss the impact at 4 s.
+    # The node waits, paused, until it records impacts for the viewer, so a slow
+    # viewer start cannot miss the impact at 4 s.
     node = NodeUnderTest(['-p', f'scene:={head_on_scene}', '-p', 'paused:=true'])
     try:
         viewer = subprocess.Popen([executable('viewer'), '--collisions', '--once', '--timeout',
                                    '60'], env=ros_env(node.domain_id), stdout=subprocess.PIPE,
                                   stderr=subprocess.PIPE, text=True)
-        node.probe.wait_for(
-            lambda: node.probe.node.count_subscribers('/particles/collisions') > 0
-            or viewer.poll() is not None, timeout=60.0)
+        # The node says when it records impacts for a subscriber (status, every 0.5 s).
+        node.probe.next_message(
+            node.statuses, timeout=60.0,
+            where=lambda m: json.loads(m.data)['recording_impacts'] or viewer.poll() is not None)
         answer = node.request(String, 'step', String(data=json.dumps({'steps': STEPS})))
         assert answer['accepted'], answer
         stdout, stderr = viewer.communicate(timeout=90)
