@@ -85,7 +85,9 @@ class CommandInterface:
         reason = ' '.join(reason.split())
         if len(reason) > MAX_REASON:
             reason = reason[:MAX_REASON] + '...'
-        self.node.get_logger().warning(f'rejected {reason}')
+        # Every refusal is answered on events; the log (console and /rosout) gets at
+        # most one a second, so a flood of bad requests does not flood it too.
+        self.node.get_logger().warning(f'rejected {reason}', throttle_duration_sec=1.0)
         self.answer(request, request_id, False, reason=reason)
 
     # -- commands -------------------------------------------------------------
@@ -94,7 +96,8 @@ class CommandInterface:
         """Spawn particles; answer their ids."""
         ids = spawn_request(self.node.world, data)
         self.node.get_logger().info(f'spawned {ids.size} particles (ids {ids[0]}..{ids[-1]})'
-                                    if ids.size else 'spawn request held no particles')
+                                    if ids.size else 'spawn request held no particles',
+                                    throttle_duration_sec=1.0)
         return {'ids': id_ranges(ids)}
 
     def _delete(self, data: Any) -> dict:
