@@ -60,8 +60,12 @@ EFFECTS = ('restitution', 'walls', 'friction')
 
 @njit(cache=True, inline='always')
 def _dot(ax, ay, az, bx, by, bz):
-    """Return a . b, summed left to right as numpy's einsum does for 3 terms."""
-    return ax * bx + ay * by + az * bz
+    """Return a . b, summed as numpy's einsum('ij,ij->i') does (x + z first, then y).
+
+    The same order of additions keeps the kernel bit-identical to the
+    vectorised law (measured on numpy 2.4: (x + z) + y on every row).
+    """
+    return (ax * bx + az * bz) + ay * by
 
 
 @njit(cache=True)
@@ -192,10 +196,18 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
 @njit(cache=True)
 def _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w_rest, w_mu,
                  w_impact, struck, use_threshold, threshold, tolerance, strike, friction,
-                 planar, w_hit, w_normal, w_tangential, loss, totals):
-    """Solve every wall plane once, plane after plane; return whether any approached."""
+                 planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, first):
+    """Solve every wall plane once, plane after plane; return whether any approached.
+
+    On the ``first`` visit each plane's contacts keep the approach speed they
+    are recorded with, just before that plane is solved (an earlier plane's
+    friction may have changed it at a corner).
+    """
     any_hit = False
     for plane in range(w_start.size - 1):
+        if first:
+            for c in range(w_start[plane], w_start[plane + 1]):
+                w_approach[c] = -w_inward[c] * v[w_index[c], w_axis[c]]
         if _solve_wall_plane(v, ang, inv_mass, radius, w_start[plane], w_start[plane + 1],
                              w_index, w_axis, w_inward, w_rest, w_mu, w_impact, struck,
                              use_threshold, threshold, tolerance, strike, friction, planar,
@@ -313,29 +325,25 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                 totals[FRICTION] += lost
                 summed_tangential[k] += tangential
         if walls:
-            if first_wall_visit:
-                # The approach a wall contact is recorded with: at its first visit.
-                for c in range(w_index.size):
-                    w_approach[c] = -w_inward[c] * v[w_index[c], w_axis[c]]
-                first_wall_visit = False
             if _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward,
                             w_rest, w_mu, w_impact, struck, use_threshold, threshold,
                             tolerance, strike, friction, planar, w_hit, w_normal,
-                            w_tangential, loss, totals):
+                            w_tangential, loss, totals, w_approach, first_wall_visit):
                 applied = True
+            first_wall_visit = False
         if not applied or single:
             break
     if shock_order.size:
         _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w_rest,
                      w_mu, w_impact, struck, use_threshold, threshold, 0.0, strike, friction,
-                     planar, w_hit, w_normal, w_tangential, loss, totals)
+                     planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, False)
         for _ in range(shock_passes):
             pushed = _shock_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order,
                                  threshold, summed_normal, loss, totals)
             _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward,
                          w_rest, w_mu, w_impact, struck, use_threshold, threshold, 0.0,
                          strike, friction, planar, w_hit, w_normal, w_tangential, loss,
-                         totals)
+                         totals, w_approach, False)
             if not pushed:
                 break
 

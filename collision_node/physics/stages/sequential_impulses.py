@@ -46,7 +46,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..coloring import color_pairs
+from .. import coloring
 from ..contact_kernels import EFFECTS, FRICTION, RESTITUTION, WALLS, solve_contacts
 from ..contact_law import (apply_impulses, apply_pair_friction, apply_pair_impulses,
                            apply_wall_friction, apply_wall_impulses, pair_coefficient,
@@ -90,7 +90,7 @@ WALL_ULPS = 4.0
 
 def solve_order(i: np.ndarray, j: np.ndarray, dynamic: np.ndarray) -> list[np.ndarray]:
     """Return the reference solve's batches: one per colour, then each overflow pair alone."""
-    batches, overflow = color_pairs(i, j, dynamic)
+    batches, overflow = coloring.color_pairs(i, j, dynamic, coloring.MAX_COLORS)
     return batches + [overflow[k:k + 1] for k in range(overflow.size)]
 
 
@@ -311,7 +311,10 @@ class SequentialImpulseStage(Stage):
         walls = self._wall_contacts(ctx, threshold, record)
         # The kernel works on contiguous float arrays; write back if copies were made.
         velocity = np.ascontiguousarray(state.velocity, dtype=float)
-        angular = np.ascontiguousarray(state.angular_velocity, dtype=float)
+        spin = state.angular_velocity
+        # Without spin (no friction) the kernel gets a scratch array it never reads.
+        angular = (np.zeros((n, 3)) if spin is None
+                   else np.ascontiguousarray(spin, dtype=float))
         rest = np.broadcast_to(np.asarray(restitution, dtype=float), (m,)).copy()
         friction = mu is not None
         mu_k = np.broadcast_to(np.asarray(mu if friction else 0.0, dtype=float), (m,)).copy()
@@ -349,8 +352,8 @@ class SequentialImpulseStage(Stage):
                        w_tangential, w_approach, loss, totals)
         if velocity is not state.velocity:
             state.velocity[...] = velocity
-        if angular is not state.angular_velocity:
-            state.angular_velocity[...] = angular
+        if spin is not None and angular is not spin:
+            spin[...] = angular
         effects = [(RESTITUTION, 'restitution')]
         if k:
             effects.append((WALLS, 'walls'))
