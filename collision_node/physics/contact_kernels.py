@@ -183,9 +183,10 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
         totals[WALLS] += removed
         w_normal[c] += magnitude
         if friction:
-            n = np.zeros(3)
-            n[axis] = inward
-            tangential, lost = _friction(v, ang, inv_mass, radius, p, -1, n[0], n[1], n[2],
+            nx = inward if axis == 0 else 0.0
+            ny = inward if axis == 1 else 0.0
+            nz = inward if axis == 2 else 0.0
+            tangential, lost = _friction(v, ang, inv_mass, radius, p, -1, nx, ny, nz,
                                          magnitude, w_mu[c], planar)
             loss[FRICTION, p] += lost
             totals[FRICTION] += lost
@@ -388,7 +389,8 @@ def prepare(say: Optional[Callable[[str], None]] = None) -> float:
         return 0.0
     compiling = not all(_cached(kernel) for kernel in _kernels())
     if compiling and say is not None:
-        where = _CACHE_DIR or 'the package __pycache__'
+        where = (os.environ.get('NUMBA_CACHE_DIR') or _CACHE_DIR
+                 or 'the package __pycache__')
         say(f'compiling the contact kernels with numba (first start only; cached in {where})')
     start = time.perf_counter()
     _warm_up()
