@@ -29,12 +29,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the options of ``node-start``."""
     parser.add_argument('--domain', type=int, default=77, help='ROS domain id (77)')
     parser.add_argument('--timeout', type=float, default=120.0, help='seconds to wait (120)')
+    parser.add_argument('--node-pythonpath', default=None,
+                        help="PYTHONPATH of the node (default: this process's), e.g. another "
+                        'checkout to compare')
 
 
 def run(args: argparse.Namespace) -> int:
     """Start the node, wait for its first pose, print the seconds taken."""
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
                ROS_DOMAIN_ID=str(args.domain), PYTHONUNBUFFERED='1')
+    if args.node_pythonpath is not None:
+        env['PYTHONPATH'] = args.node_pythonpath
     os.environ.update(ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', ROS_DOMAIN_ID=str(args.domain))
     rclpy.init()
     node = rclpy.create_node('node_start_bench')
