@@ -23,6 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .physics.accuracy import parse_accuracy_text
+from .physics.contact_kernels import prepare as prepare_kernels
 from .physics.scene import load_scene
 from .physics.validation import SceneError
 from .physics.world import NonFiniteStateError, World
@@ -200,6 +201,8 @@ def _main(argv: Optional[Sequence[str]]) -> int:
         duration = scene.duration if args.duration is None else args.duration
         steps = steps_to_run(args, duration, scene.dt)
         world = World(scene)
+        # Compiled once, then loaded from the cache; only a compile is reported.
+        prepare_kernels(lambda text: print(f'simulate: {text}', file=sys.stderr))
     except (UsageError, SceneError) as error:
         print(f'simulate: error: {error}', file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -29,6 +29,7 @@ from msg_adapters import (clock_message, marker_array_bytes, point_cloud_bytes,
                           pose_array_bytes, velocities_bytes)
 
 from ..physics.accuracy import parse_accuracy_text
+from ..physics.contact_kernels import prepare as prepare_kernels
 from ..physics.scene import load_scene
 from ..physics.validation import SceneError
 from ..physics.world import NonFiniteStateError, World
@@ -68,6 +69,8 @@ class CollisionNode(Node):
                 parse_accuracy_text(value['accuracy'], self.scene.effects,
                                     'parameter accuracy'))
         self.world = World(self.scene, max_particles=value['max_particles'])
+        # Compiled once, then loaded from the cache; only a compile is logged.
+        prepare_kernels(self.get_logger().info)
         self.real_time_factor = value['real_time_factor']
         self.publish_rate = value['publish_rate']
         self.paused = value['paused']

@@ -27,8 +27,17 @@ impulses. What the solve adds to the law:
   once per solve: its summed normal and tangential impulse and the speed
   it closed at before the solve.
 
-The dense-cluster fallback (pairs past ``MAX_BATCHES`` colours) is
-frictionless.
+Two backends apply the same law. ``kernel`` (the default) runs the whole
+solve in one compiled call (``contact_kernels.solve_contacts``) that
+visits contacts one at a time in the broadphase's sorted pair order, and
+the shock passes' pairs from the ground up: the order Gauss-Seidel walks a
+chain such as Newton's cradle from its low end in one sweep (the chain
+batches this replaced reproduced exactly that order, one batch per link).
+``numpy`` is the vectorised reference: one greedy colour of the contact
+graph per call (``coloring``), pairs past the colour budget one at a time;
+the kernel visiting in that colour order gives identical velocities and
+bookings (``test/test_contact_kernels.py``). Dense clusters get friction
+and the ordered solve like any other contact.
 """
 
 from __future__ import annotations
@@ -37,7 +46,8 @@ from typing import Optional
 
 import numpy as np
 
-from ..coloring import color_pairs
+from .. import coloring
+from ..contact_kernels import EFFECTS, FRICTION, RESTITUTION, WALLS, solve_contacts
 from ..contact_law import (apply_impulses, apply_pair_friction, apply_pair_impulses,
                            apply_wall_friction, apply_wall_impulses, pair_coefficient,
                            record_pairs, record_walls, wall_coefficient)
@@ -45,12 +55,12 @@ from ..effects import Walls
 from ..impulse import closing_speed
 from ..step import Contacts, Stage, StepContext
 
-# Past this many colours (only in very dense clusters, e.g. a thousand
-# particles spawned on one point) the remaining pairs share their impulses
-# out, each scaled by 1 / (contacts of its busiest particle): stable and
-# never energy-adding, at the price of the order-dependent exactness that
-# such a cluster does not have anyway.
-MAX_BATCHES = 256
+# Solvers: 'kernel' (compiled, one contact at a time) and 'numpy' (the
+# vectorised reference: one colour per call, overflow one by one).
+BACKENDS = ('kernel', 'numpy')
+# Orders the kernel visits contacts in: 'pairs' (the broadphase's sorted
+# (i, j) order, shock passes by height) or 'colours' (the reference's).
+VISITS = ('pairs', 'colours')
 
 
 # Closing speeds below this fraction of the restitution threshold count as
@@ -76,6 +86,12 @@ SHOCK_PASSES = 8
 # of the coordinate itself: 1e-9 of a plane at x = 1e9 m was a slop of 1 m.
 WALL_SLOP = 1.0e-9
 WALL_ULPS = 4.0
+
+
+def solve_order(i: np.ndarray, j: np.ndarray, dynamic: np.ndarray) -> list[np.ndarray]:
+    """Return the reference solve's batches: one per colour, then each overflow pair alone."""
+    batches, overflow = coloring.color_pairs(i, j, dynamic, coloring.MAX_COLORS)
+    return batches + [overflow[k:k + 1] for k in range(overflow.size)]
 
 
 class WallContacts:
@@ -152,7 +168,8 @@ class SequentialImpulseStage(Stage):
 
     def __init__(self, restitution: float, iterations: int,
                  friction: Optional[float] = None, walls: Optional[Walls] = None,
-                 gravity: Optional[np.ndarray] = None) -> None:
+                 gravity: Optional[np.ndarray] = None, backend: str = 'kernel',
+                 visit: str = 'pairs') -> None:
         """Keep the particle-particle restitution, the sweep budget, friction mu and walls.
 
         With walls, particles touching a wall plane are solved together with
@@ -166,6 +183,10 @@ class SequentialImpulseStage(Stage):
         self.friction = friction
         self.walls = walls
         self.gravity = gravity
+        if backend not in BACKENDS or visit not in VISITS:
+            raise ValueError(f'backend must be one of {BACKENDS} and visit one of {VISITS}, '
+                             f'got {backend!r}, {visit!r}')
+        self.backend, self.visit = backend, visit
 
     def run(self, ctx: StepContext) -> None:
         """Apply the law's impulses in place, count the contacts hit, book and record them."""
@@ -197,12 +218,15 @@ class SequentialImpulseStage(Stage):
         # impact caused, stays inelastic and the pile does not bounce.
         # Every impulse uses (1 + e) on the current closing speed, which
         # never adds energy.
+        if self.backend == 'kernel':
+            self._run_kernel(ctx, restitution, mu, threshold, tolerance, planar, shock)
+            return
         struck = impact = None
         if threshold > 0.0:
             struck = np.zeros(len(state), dtype=bool)
             impact = -closing_speed(state.velocity, i, j, normal) >= threshold
         per_pair = np.ndim(restitution) > 0
-        batches, leftover = color_pairs(i, j, state.dynamic, MAX_BATCHES)
+        batches = solve_order(i, j, state.dynamic)
         record = ctx.impacts is not None
         walls = self._wall_contacts(ctx, threshold, record)
         hit = np.zeros(len(contacts), dtype=bool)
@@ -223,8 +247,10 @@ class SequentialImpulseStage(Stage):
                 if not mask.any():
                     continue
                 if struck is not None:
+                    # A static particle never moves, so it passes no shock on.
                     bouncing = mask & (e > 0.0) & (result.approach >= STRIKE_FACTOR * threshold)
-                    struck[bi[bouncing]] = struck[bj[bouncing]] = True
+                    struck[bi[bouncing & state.dynamic[bi]]] = True
+                    struck[bj[bouncing & state.dynamic[bj]]] = True
                 hit[batch[mask]] = True
                 applied = True
                 ctx.book('restitution', result.removed[mask], bi[mask], bj[mask])
@@ -238,27 +264,13 @@ class SequentialImpulseStage(Stage):
                     ctx.book('friction', lost, bi[mask], bj[mask])
                     if record:
                         summed_tangential[batch[mask]] += tangential
-            if leftover.size:
-                li, lj, ln = i[leftover], j[leftover], normal[leftover]
-                e = restitution[leftover] if per_pair else restitution
-                if struck is not None:
-                    e = self._thresholded(state, li, lj, ln, e, threshold, impact[leftover],
-                                          struck)
-                result = apply_pair_impulses(state.velocity, state.inv_mass, li, lj, ln, e,
-                                             scale=self._leftover_scale(state, i, j, leftover))
-                if result.hit.any():
-                    hit[leftover[result.hit]] = True
-                    applied = True
-                    ctx.book('restitution', result.removed_at, result.particles)
-                    if record:
-                        summed_normal[leftover] += result.magnitude
             # Each plane is one batch: a particle touches a plane once.
             for wall in walls:
                 applied = wall.solve(ctx, tolerance, planar, struck) or applied
             # One batch shares no dynamic particle, so after one sweep every
             # contact is resolved (vn' = -e vn >= 0) and a checking sweep
             # would find nothing: skip it.
-            if not applied or (len(batches) == 1 and not leftover.size and not walls):
+            if not applied or (len(batches) == 1 and not walls):
                 break
         if shock and len(contacts):
             # The sweeps stop at the tolerance, which leaves a stack sinking at up
@@ -284,6 +296,84 @@ class SequentialImpulseStage(Stage):
                          j[pushed], normal[pushed], summed_normal[pushed],
                          summed_tangential[pushed], np.maximum(approach0[pushed], 0.0))
             for wall in walls:
+                wall.record(ctx)
+
+    def _run_kernel(self, ctx: StepContext, restitution, mu, threshold: float,
+                    tolerance: float, planar: bool, shock: bool) -> None:
+        """Run the same solve in one compiled call (``contact_kernels.solve_contacts``)."""
+        state = ctx.state
+        contacts = ctx.contacts if ctx.contacts is not None else Contacts.empty()
+        i = np.ascontiguousarray(contacts.i, dtype=np.int64)
+        j = np.ascontiguousarray(contacts.j, dtype=np.int64)
+        normal = np.ascontiguousarray(contacts.normal, dtype=float)
+        m, n = i.size, len(state)
+        record = ctx.impacts is not None
+        walls = self._wall_contacts(ctx, threshold, record)
+        # The kernel works on contiguous float arrays; write back if copies were made.
+        velocity = np.ascontiguousarray(state.velocity, dtype=float)
+        spin = state.angular_velocity
+        # Without spin (no friction) the kernel gets a scratch array it never reads.
+        angular = (np.zeros((n, 3)) if spin is None
+                   else np.ascontiguousarray(spin, dtype=float))
+        rest = np.broadcast_to(np.asarray(restitution, dtype=float), (m,)).copy()
+        friction = mu is not None
+        mu_k = np.broadcast_to(np.asarray(mu if friction else 0.0, dtype=float), (m,)).copy()
+        order = self._visit_order(i, j, state.dynamic)
+        shock_order = np.zeros(0, dtype=np.int64)
+        i_lower = np.zeros(m, dtype=bool)
+        if shock and m:
+            shock_order, i_lower = self._shock_order(state, i, j, self.gravity)
+        w_start = np.zeros(len(walls) + 1, dtype=np.int64)
+        w_start[1:] = np.cumsum([w.index.size for w in walls])
+        k = int(w_start[-1])
+        w_index = np.zeros(k, dtype=np.int64)
+        w_axis = np.zeros(k, dtype=np.int64)
+        w_inward, w_rest, w_mu = np.zeros(k), np.zeros(k), np.zeros(k)
+        for wall, lo, hi in zip(walls, w_start[:-1], w_start[1:]):
+            w_index[lo:hi], w_axis[lo:hi], w_inward[lo:hi] = wall.index, wall.axis, wall.inward
+            w_rest[lo:hi] = wall.restitution
+            if friction:
+                w_mu[lo:hi] = wall.friction
+        if record:
+            approach0 = -closing_speed(velocity, i, j, normal)
+        hit = np.zeros(m, dtype=bool)
+        summed_normal, summed_tangential = np.zeros(m), np.zeros(m)
+        w_hit = np.zeros(k, dtype=bool)
+        w_normal, w_tangential, w_approach = np.zeros(k), np.zeros(k), np.zeros(k)
+        loss = np.zeros((len(EFFECTS), n))
+        totals = np.zeros(len(EFFECTS))
+        solve_contacts(velocity, angular, np.ascontiguousarray(state.inv_mass, dtype=float),
+                       np.ascontiguousarray(state.radius, dtype=float),
+                       np.ascontiguousarray(state.dynamic, dtype=np.bool_), i, j, normal,
+                       rest, mu_k, order, w_start, w_index, w_axis, w_inward, w_rest, w_mu,
+                       threshold > 0.0, float(threshold), float(tolerance), STRIKE_FACTOR,
+                       int(self.iterations), friction, planar, shock_order, i_lower,
+                       SHOCK_PASSES, hit, summed_normal, summed_tangential, w_hit, w_normal,
+                       w_tangential, w_approach, loss, totals)
+        if velocity is not state.velocity:
+            state.velocity[...] = velocity
+        if spin is not None and angular is not spin:
+            spin[...] = angular
+        effects = [(RESTITUTION, 'restitution')]
+        if k:
+            effects.append((WALLS, 'walls'))
+        if friction:
+            effects.append((FRICTION, 'friction'))
+        for row, effect in effects:
+            ctx.stats.add_dissipated(effect, float(totals[row]))
+            if ctx.losses is not None:
+                ctx.losses += loss[row]
+        ctx.stats.collisions += int(hit.sum())
+        ctx.stats.wall_collisions += int(w_hit.sum())
+        if record:
+            pushed = summed_normal > 0.0
+            record_pairs(ctx.impacts, ctx.time, state.position, state.radius, i[pushed],
+                         j[pushed], normal[pushed], summed_normal[pushed],
+                         summed_tangential[pushed], np.maximum(approach0[pushed], 0.0))
+            for wall, lo, hi in zip(walls, w_start[:-1], w_start[1:]):
+                wall.normal_impulse = w_normal[lo:hi]
+                wall.tangential = w_tangential[lo:hi]
+                wall.approach = w_approach[lo:hi]
                 wall.record(ctx)
 
     @staticmethod
@@ -350,9 +440,7 @@ class SequentialImpulseStage(Stage):
         lower = np.where(i_lower, i, j)
         upper = np.where(i_lower, j, i)
         outward = np.where(i_lower[:, None], -normal, normal)    # lower -> upper
-        batches, leftover = color_pairs(i, j, state.dynamic, MAX_BATCHES)
-        if leftover.size:
-            batches.append(leftover)
+        batches = solve_order(i, j, state.dynamic)
         pushed = None
         dynamic = state.dynamic
         for batch in batches:
@@ -373,13 +461,24 @@ class SequentialImpulseStage(Stage):
             pushed[order[batch[resting]]] += magnitude
         return pushed
 
-    @staticmethod
-    def _leftover_scale(state, i: np.ndarray, j: np.ndarray, leftover: np.ndarray
-                        ) -> np.ndarray:
-        """Share out the impulses of pairs past the colour budget (see MAX_BATCHES)."""
-        busiest = np.maximum(np.bincount(i[leftover], minlength=len(state)),
-                             np.bincount(j[leftover], minlength=len(state)))
-        return 1.0 / np.maximum(busiest[i[leftover]], busiest[j[leftover]])
+    def _visit_order(self, i: np.ndarray, j: np.ndarray, dynamic: np.ndarray) -> np.ndarray:
+        """Return the order the kernel visits the pairs in (see ``visit``)."""
+        if self.visit == 'pairs':
+            return np.arange(i.size, dtype=np.int64)
+        batches = solve_order(i, j, dynamic)
+        return np.concatenate(batches) if batches else np.zeros(0, dtype=np.int64)
+
+    def _shock_order(self, state, i: np.ndarray, j: np.ndarray, gravity: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """Return the shock passes' pair order (ground up) and whether i is the lower one."""
+        # As _shock_pass: heights relative to the first contact's particle.
+        origin = state.position[i[0]]
+        height = -((state.position - origin) @ gravity)
+        i_lower = height[i] <= height[j]
+        order = np.argsort(np.where(i_lower, height[i], height[j]), kind='stable')
+        if self.visit == 'colours':
+            order = order[np.concatenate(solve_order(i[order], j[order], state.dynamic))]
+        return order.astype(np.int64), i_lower
 
     def describe(self) -> str:
         """Say what the stage does."""
