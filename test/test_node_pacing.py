@@ -88,3 +88,24 @@ def test_default_scene_is_a_valid_break_with_collisions_soon():
     world.step(round(0.5 / world.dt))
     assert world.stats.collisions > 0
     assert world.kinetic_energy() == pytest.approx(0.5 * 0.17 * 25.0, rel=1e-9)
+
+
+def test_log_budget_logs_single_refusals_and_bounds_a_flood():
+    from collision_node.ros.commands import LOGGED_PER_SECOND, LogBudget
+
+    class Logger:
+        def __init__(self):
+            self.lines = []
+
+        def warning(self, text):
+            self.lines.append(text)
+
+    logger = Logger()
+    budget = LogBudget(logger)
+    assert budget.spend(10.0) and budget.spend(10.2)          # single refusals: logged
+    flood = [budget.spend(10.3 + k * 1e-4) for k in range(100)]
+    assert sum(flood) == LOGGED_PER_SECOND - 2                 # the rest of the budget
+    assert logger.lines == []
+    assert budget.spend(11.3)                                  # a new second: logged again
+    assert logger.lines == [f'{100 - (LOGGED_PER_SECOND - 2)} more requests were rejected in '
+                            'a second without a log line (each was answered on events)']

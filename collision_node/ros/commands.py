@@ -37,6 +37,31 @@ MAX_REASON = 400             # characters of a refusal reason in an answer
 # Queued requests one callback may take after its own (see _subscribe).
 DRAIN_MESSAGES = 256
 DRAIN_SECONDS = 0.01
+# Refusals logged a second at most (each is answered on events anyway).
+LOGGED_PER_SECOND = 20
+
+
+class LogBudget:
+    """At most ``LOGGED_PER_SECOND`` refusals logged a second; the rest counted, then said."""
+
+    def __init__(self, logger: Any) -> None:
+        """Start a window with the whole budget."""
+        self.logger = logger
+        self.window_start = -1.0
+        self.logged = self.suppressed = 0
+
+    def spend(self, now: float) -> bool:
+        """Return whether a refusal at ``now`` may be logged; report what was held back."""
+        if now - self.window_start >= 1.0:
+            if self.suppressed:
+                self.logger.warning(f'{self.suppressed} more requests were rejected in a '
+                                    'second without a log line (each was answered on events)')
+            self.window_start, self.logged, self.suppressed = now, 0, 0
+        if self.logged < LOGGED_PER_SECOND:
+            self.logged += 1
+            return True
+        self.suppressed += 1
+        return False
 
 
 class CommandInterface:
@@ -50,6 +75,7 @@ class CommandInterface:
         """
         self.node = node
         self.seq = 0
+        self.log_budget = LogBudget(node.get_logger())
         self.pub_events = node.create_publisher(String, 'events', EVENTS_QOS)
         handlers: dict[str, Callable[[Any], dict]] = {
             'spawn': self._spawn, 'delete': self._delete, 'teleport': self._teleport,
@@ -108,9 +134,10 @@ class CommandInterface:
         reason = ' '.join(reason.split())
         if len(reason) > MAX_REASON:
             reason = reason[:MAX_REASON] + '...'
-        # Every refusal is answered on events; the log (console and /rosout) gets at
-        # most one a second, so a flood of bad requests does not flood it too.
-        self.node.get_logger().warning(f'rejected {reason}', throttle_duration_sec=1.0)
+        # Every refusal is answered on events; the log (console and /rosout) gets
+        # each one too, up to a budget a second, so a flood does not flood it.
+        if self.log_budget.spend(time.monotonic()):
+            self.node.get_logger().warning(f'rejected {reason}')
         self.answer(request, request_id, False, reason=reason)
 
     # -- commands -------------------------------------------------------------
