@@ -158,19 +158,11 @@ def _book_pair(loss, effect, inv_mass, a, b, removed):
 @njit(cache=True)
 def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_inward,
                       w_rest, w_mu, w_impact, struck, use_threshold, threshold, tolerance,
-                      strike, friction, planar, w_hit, w_normal, w_tangential, loss, totals,
-                      changed, w_checked, tick, skip):
-    """Solve one wall plane's contacts (distinct particles); return whether any approached.
-
-    With ``skip``, a contact found not approaching (at this ``tolerance``)
-    is passed over until its particle's velocity changes (``changed``,
-    ``w_checked`` and ``tick``: see ``solve_contacts``).
-    """
+                      strike, friction, planar, w_hit, w_normal, w_tangential, loss, totals):
+    """Solve one wall plane's contacts (distinct particles); return whether any approached."""
     any_hit = False
     for c in range(start, stop):
         p, axis, inward = w_index[c], w_axis[c], w_inward[c]
-        if skip and w_checked[c] >= changed[p]:
-            continue
         e = w_rest[c]
         if use_threshold:
             u = inward * v[p, axis]
@@ -178,10 +170,7 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
                 e = 0.0
         approach = -inward * v[p, axis]
         if not approach > tolerance:
-            w_checked[c] = tick[0]
             continue
-        tick[0] += 1
-        changed[p] = tick[0]
         change = (1.0 + e) * approach
         v[p, axis] += inward * change
         magnitude = change / inv_mass[p]
@@ -208,8 +197,7 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
 @njit(cache=True)
 def _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w_rest, w_mu,
                  w_impact, struck, use_threshold, threshold, tolerance, strike, friction,
-                 planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, first,
-                 changed, w_checked, tick, skip):
+                 planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, first):
     """Solve every wall plane once, plane after plane; return whether any approached.
 
     On the ``first`` visit each plane's contacts keep the approach speed they
@@ -224,8 +212,7 @@ def _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w
         if _solve_wall_plane(v, ang, inv_mass, radius, w_start[plane], w_start[plane + 1],
                              w_index, w_axis, w_inward, w_rest, w_mu, w_impact, struck,
                              use_threshold, threshold, tolerance, strike, friction, planar,
-                             w_hit, w_normal, w_tangential, loss, totals, changed, w_checked,
-                             tick, skip):
+                             w_hit, w_normal, w_tangential, loss, totals):
             any_hit = True
     return any_hit
 
@@ -308,22 +295,10 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                     single = False
     walls = w_start.size > 1
     first_wall_visit = True
-    # A contact a sweep found not closing faster than the tolerance does nothing
-    # at its next visit unless one of its particles' velocities changed since
-    # (its approach speed, the only thing the test reads, is the same): such a
-    # visit is skipped. ``tick`` counts velocity changes; ``changed`` holds the
-    # tick of each particle's last change, ``checked`` / ``w_checked`` the tick
-    # at each contact's last idle visit. The outcome is exactly the full sweep's.
-    tick = np.zeros(1, dtype=np.int64)
-    changed = np.zeros(n, dtype=np.int64)
-    checked = np.full(m, -1, dtype=np.int64)
-    w_checked = np.full(w_index.size, -1, dtype=np.int64)
     for _ in range(iterations):
         applied = False
         for k in order:
             a, b = pi[k], pj[k]
-            if checked[k] >= changed[a] and checked[k] >= changed[b]:
-                continue
             nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
             e = rest[k]
             if use_threshold:
@@ -334,11 +309,7 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
             magnitude, approach, removed = pair_impulse(v, inv_mass, a, b, nx, ny, nz, e,
                                                         tolerance)
             if not approach > tolerance:
-                checked[k] = tick[0]
                 continue
-            tick[0] += 1
-            changed[a] = tick[0]
-            changed[b] = tick[0]
             if use_threshold and e > 0.0 and approach >= strike * threshold:
                 # A static particle never moves, so it passes no shock on.
                 struck[a] = dynamic[a]
@@ -358,8 +329,7 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
             if _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward,
                             w_rest, w_mu, w_impact, struck, use_threshold, threshold,
                             tolerance, strike, friction, planar, w_hit, w_normal,
-                            w_tangential, loss, totals, w_approach, first_wall_visit,
-                            changed, w_checked, tick, True):
+                            w_tangential, loss, totals, w_approach, first_wall_visit):
                 applied = True
             first_wall_visit = False
         if not applied or single:
@@ -367,15 +337,14 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
     if shock_order.size:
         _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w_rest,
                      w_mu, w_impact, struck, use_threshold, threshold, 0.0, strike, friction,
-                     planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, False,
-                     changed, w_checked, tick, False)
+                     planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, False)
         for _ in range(shock_passes):
             pushed = _shock_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order,
                                  threshold, summed_normal, loss, totals)
             _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward,
                          w_rest, w_mu, w_impact, struck, use_threshold, threshold, 0.0,
                          strike, friction, planar, w_hit, w_normal, w_tangential, loss,
-                         totals, w_approach, False, changed, w_checked, tick, False)
+                         totals, w_approach, False)
             if not pushed:
                 break
 
