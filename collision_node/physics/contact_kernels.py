@@ -78,6 +78,13 @@ def pair_impulse(v, inv_mass, a, b, nx, ny, nz, e, tolerance):
     approach = -_dot(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2], nx, ny, nz)
     if not approach > tolerance:
         return 0.0, approach, 0.0
+    magnitude, removed = _apply_pair(v, inv_mass, a, b, nx, ny, nz, e, approach)
+    return magnitude, approach, removed
+
+
+@njit(cache=True)
+def _apply_pair(v, inv_mass, a, b, nx, ny, nz, e, approach):
+    """Apply the normal impulse to a pair closing at ``approach``; return (N s, J removed)."""
     w_a, w_b = inv_mass[a], inv_mass[b]
     magnitude = (1.0 + e) * approach / (w_a + w_b)
     ka, kb = magnitude * w_a, magnitude * w_b
@@ -87,7 +94,13 @@ def pair_impulse(v, inv_mass, a, b, nx, ny, nz, e, tolerance):
     v[b, 0] += -(kb * nx)
     v[b, 1] += -(kb * ny)
     v[b, 2] += -(kb * nz)
-    return magnitude, approach, 0.5 * magnitude * approach * (1.0 - e)
+    return magnitude, 0.5 * magnitude * approach * (1.0 - e)
+
+
+@njit(cache=True)
+def spin_factor(inv_mass, radius, p):
+    """Return -(r^2 m / I) w / r of particle ``p``: its spin change per unit r x J."""
+    return -(SPIN_FACTOR * inv_mass[p] / radius[p])
 
 
 @njit(cache=True)
@@ -97,6 +110,19 @@ def _friction(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu, pl
     The law of ``friction.py``: the impulse that stops the slip of the
     contact points, bounded by mu times the normal impulse. Returns
     (tangential impulse magnitude N s, energy removed J).
+    """
+    f_b = spin_factor(inv_mass, radius, b) if b >= 0 else 0.0
+    return _friction_spun(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu,
+                          planar, spin_factor(inv_mass, radius, a), f_b)
+
+
+@njit(cache=True)
+def _friction_spun(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu, planar,
+                   f_a, f_b):
+    """``_friction`` with the particles' spin factors given (``spin_factor``, the same values).
+
+    A solve computes them once per particle instead of at every visit: the
+    divisions are most of a contact visit's arithmetic.
     """
     w_a = inv_mass[a]
     sx, sy, sz = radius[a] * ang[a, 0], radius[a] * ang[a, 1], radius[a] * ang[a, 2]
@@ -132,25 +158,28 @@ def _friction(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu, pl
     v[a, 0] += w_a * jx
     v[a, 1] += w_a * jy
     v[a, 2] += w_a * jz
-    f = -(SPIN_FACTOR * w_a / radius[a])
-    ang[a, 0] += f * cx
-    ang[a, 1] += f * cy
-    ang[a, 2] += f * cz
+    ang[a, 0] += f_a * cx
+    ang[a, 1] += f_a * cy
+    ang[a, 2] += f_a * cz
     if b >= 0:
         v[b, 0] += -w_b * jx
         v[b, 1] += -w_b * jy
         v[b, 2] += -w_b * jz
-        f = -(SPIN_FACTOR * w_b / radius[b])
-        ang[b, 0] += f * cx
-        ang[b, 1] += f * cy
-        ang[b, 2] += f * cz
+        ang[b, 0] += f_b * cx
+        ang[b, 1] += f_b * cy
+        ang[b, 2] += f_b * cz
     return math.sqrt(_dot(jx, jy, jz, jx, jy, jz)), removed
 
 
 @njit(cache=True)
-def _book_pair(loss, effect, inv_mass, a, b, removed):
-    """Share a pair's loss by inverse mass, as ``StepContext.book`` does."""
-    share = inv_mass[a] / (inv_mass[a] + inv_mass[b])
+def _share(inv_mass, a, b):
+    """Return particle a's share of a pair's loss, by inverse mass (``StepContext.book``)."""
+    return inv_mass[a] / (inv_mass[a] + inv_mass[b])
+
+
+@njit(cache=True)
+def _book_pair(loss, effect, a, b, removed, share):
+    """Book a pair's loss to its particles, a taking ``share`` (``_share``)."""
     loss[effect, a] += removed * share
     loss[effect, b] += removed * (1.0 - share)
 
@@ -158,8 +187,12 @@ def _book_pair(loss, effect, inv_mass, a, b, removed):
 @njit(cache=True)
 def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_inward,
                       w_rest, w_mu, w_impact, struck, use_threshold, threshold, tolerance,
-                      strike, friction, planar, w_hit, w_normal, w_tangential, loss, totals):
-    """Solve one wall plane's contacts (distinct particles); return whether any approached."""
+                      strike, friction, planar, w_hit, w_normal, w_tangential, loss, totals,
+                      spin):
+    """Solve one wall plane's contacts (distinct particles); return whether any approached.
+
+    ``spin``: each particle's ``spin_factor`` (used with friction only).
+    """
     any_hit = False
     for c in range(start, stop):
         p, axis, inward = w_index[c], w_axis[c], w_inward[c]
@@ -186,8 +219,8 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
             nx = inward if axis == 0 else 0.0
             ny = inward if axis == 1 else 0.0
             nz = inward if axis == 2 else 0.0
-            tangential, lost = _friction(v, ang, inv_mass, radius, p, -1, nx, ny, nz,
-                                         magnitude, w_mu[c], planar)
+            tangential, lost = _friction_spun(v, ang, inv_mass, radius, p, -1, nx, ny, nz,
+                                              magnitude, w_mu[c], planar, spin[p], 0.0)
             loss[FRICTION, p] += lost
             totals[FRICTION] += lost
             w_tangential[c] += tangential
@@ -197,7 +230,8 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
 @njit(cache=True)
 def _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w_rest, w_mu,
                  w_impact, struck, use_threshold, threshold, tolerance, strike, friction,
-                 planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, first):
+                 planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, first,
+                 spin):
     """Solve every wall plane once, plane after plane; return whether any approached.
 
     On the ``first`` visit each plane's contacts keep the approach speed they
@@ -212,7 +246,7 @@ def _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w
         if _solve_wall_plane(v, ang, inv_mass, radius, w_start[plane], w_start[plane + 1],
                              w_index, w_axis, w_inward, w_rest, w_mu, w_impact, struck,
                              use_threshold, threshold, tolerance, strike, friction, planar,
-                             w_hit, w_normal, w_tangential, loss, totals):
+                             w_hit, w_normal, w_tangential, loss, totals, spin):
             any_hit = True
     return any_hit
 
@@ -295,41 +329,51 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                     single = False
     walls = w_start.size > 1
     first_wall_visit = True
+    # The loss shares and spin factors are fixed for the solve: computed once,
+    # not at each of up to ``iterations`` visits (the same values).
+    share = np.empty(m)
+    for k in range(m):
+        share[k] = _share(inv_mass, pi[k], pj[k])
+    spin = np.zeros(n)
+    if friction:
+        for p in range(n):
+            spin[p] = spin_factor(inv_mass, radius, p)
     for _ in range(iterations):
         applied = False
         for k in order:
             a, b = pi[k], pj[k]
             nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
-            e = rest[k]
-            if use_threshold:
-                fast = -_dot(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2],
-                             nx, ny, nz) >= threshold
-                if not (fast and (impact[k] or struck[a] or struck[b])):
-                    e = 0.0
-            magnitude, approach, removed = pair_impulse(v, inv_mass, a, b, nx, ny, nz, e,
-                                                        tolerance)
+            # The closing speed is read once: it decides both whether the pair
+            # gets an impulse and, against the threshold, its e.
+            approach = -_dot(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2],
+                             nx, ny, nz)
             if not approach > tolerance:
                 continue
+            e = rest[k]
+            if use_threshold:
+                if not (approach >= threshold and (impact[k] or struck[a] or struck[b])):
+                    e = 0.0
+            magnitude, removed = _apply_pair(v, inv_mass, a, b, nx, ny, nz, e, approach)
             if use_threshold and e > 0.0 and approach >= strike * threshold:
                 # A static particle never moves, so it passes no shock on.
                 struck[a] = dynamic[a]
                 struck[b] = dynamic[b]
             hit[k] = True
             applied = True
-            _book_pair(loss, RESTITUTION, inv_mass, a, b, removed)
+            _book_pair(loss, RESTITUTION, a, b, removed, share[k])
             totals[RESTITUTION] += removed
             summed_normal[k] += magnitude
             if friction:
-                tangential, lost = _friction(v, ang, inv_mass, radius, a, b, nx, ny, nz,
-                                             magnitude, mu[k], planar)
-                _book_pair(loss, FRICTION, inv_mass, a, b, lost)
+                tangential, lost = _friction_spun(v, ang, inv_mass, radius, a, b, nx, ny, nz,
+                                                  magnitude, mu[k], planar, spin[a], spin[b])
+                _book_pair(loss, FRICTION, a, b, lost, share[k])
                 totals[FRICTION] += lost
                 summed_tangential[k] += tangential
         if walls:
             if _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward,
                             w_rest, w_mu, w_impact, struck, use_threshold, threshold,
                             tolerance, strike, friction, planar, w_hit, w_normal,
-                            w_tangential, loss, totals, w_approach, first_wall_visit):
+                            w_tangential, loss, totals, w_approach, first_wall_visit, spin):
                 applied = True
             first_wall_visit = False
         if not applied or single:
@@ -337,14 +381,15 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
     if shock_order.size:
         _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w_rest,
                      w_mu, w_impact, struck, use_threshold, threshold, 0.0, strike, friction,
-                     planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, False)
+                     planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, False,
+                     spin)
         for _ in range(shock_passes):
             pushed = _shock_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order,
                                  threshold, summed_normal, loss, totals)
             _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward,
                          w_rest, w_mu, w_impact, struck, use_threshold, threshold, 0.0,
                          strike, friction, planar, w_hit, w_normal, w_tangential, loss,
-                         totals, w_approach, False)
+                         totals, w_approach, False, spin)
             if not pushed:
                 break
 
