@@ -38,6 +38,14 @@ used to be the whole world's). What such speeds cannot pay (resting or
 falling particles) stays added. Everything is booked as 'separation' (a
 net addition as a negative loss), from each particle's displacement,
 -m g . dx, so the energy balance closes, also far from the origin.
+
+Two backends do exactly this. ``kernel`` (the default) runs the passes,
+wall clamps and the per-cluster budget (clusters by union-find) in
+compiled loops (``contact_kernels.project_overlaps`` and ``pay_for_lift``),
+with the same floating-point operations in the same order as ``numpy``,
+the vectorised statement kept below as the reference;
+``test/test_separation_kernels.py`` asserts identical positions, velocities
+and bookings.
 """
 
 from __future__ import annotations
