@@ -78,6 +78,13 @@ def pair_impulse(v, inv_mass, a, b, nx, ny, nz, e, tolerance):
     approach = -_dot(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2], nx, ny, nz)
     if not approach > tolerance:
         return 0.0, approach, 0.0
+    magnitude, removed = _apply_pair(v, inv_mass, a, b, nx, ny, nz, e, approach)
+    return magnitude, approach, removed
+
+
+@njit(cache=True)
+def _apply_pair(v, inv_mass, a, b, nx, ny, nz, e, approach):
+    """Apply the normal impulse to a pair closing at ``approach``; return (N s, J removed)."""
     w_a, w_b = inv_mass[a], inv_mass[b]
     magnitude = (1.0 + e) * approach / (w_a + w_b)
     ka, kb = magnitude * w_a, magnitude * w_b
@@ -87,7 +94,13 @@ def pair_impulse(v, inv_mass, a, b, nx, ny, nz, e, tolerance):
     v[b, 0] += -(kb * nx)
     v[b, 1] += -(kb * ny)
     v[b, 2] += -(kb * nz)
-    return magnitude, approach, 0.5 * magnitude * approach * (1.0 - e)
+    return magnitude, 0.5 * magnitude * approach * (1.0 - e)
+
+
+@njit(cache=True)
+def spin_factor(inv_mass, radius, p):
+    """Return -(r^2 m / I) w / r of particle ``p``: its spin change per unit r x J."""
+    return -(SPIN_FACTOR * inv_mass[p] / radius[p])
 
 
 @njit(cache=True)
@@ -97,6 +110,19 @@ def _friction(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu, pl
     The law of ``friction.py``: the impulse that stops the slip of the
     contact points, bounded by mu times the normal impulse. Returns
     (tangential impulse magnitude N s, energy removed J).
+    """
+    f_b = spin_factor(inv_mass, radius, b) if b >= 0 else 0.0
+    return _friction_spun(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu,
+                          planar, spin_factor(inv_mass, radius, a), f_b)
+
+
+@njit(cache=True)
+def _friction_spun(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu, planar,
+                   f_a, f_b):
+    """``_friction`` with the particles' spin factors given (``spin_factor``, the same values).
+
+    A solve computes them once per particle instead of at every visit: the
+    divisions are most of a contact visit's arithmetic.
     """
     w_a = inv_mass[a]
     sx, sy, sz = radius[a] * ang[a, 0], radius[a] * ang[a, 1], radius[a] * ang[a, 2]
@@ -132,25 +158,28 @@ def _friction(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu, pl
     v[a, 0] += w_a * jx
     v[a, 1] += w_a * jy
     v[a, 2] += w_a * jz
-    f = -(SPIN_FACTOR * w_a / radius[a])
-    ang[a, 0] += f * cx
-    ang[a, 1] += f * cy
-    ang[a, 2] += f * cz
+    ang[a, 0] += f_a * cx
+    ang[a, 1] += f_a * cy
+    ang[a, 2] += f_a * cz
     if b >= 0:
         v[b, 0] += -w_b * jx
         v[b, 1] += -w_b * jy
         v[b, 2] += -w_b * jz
-        f = -(SPIN_FACTOR * w_b / radius[b])
-        ang[b, 0] += f * cx
-        ang[b, 1] += f * cy
-        ang[b, 2] += f * cz
+        ang[b, 0] += f_b * cx
+        ang[b, 1] += f_b * cy
+        ang[b, 2] += f_b * cz
     return math.sqrt(_dot(jx, jy, jz, jx, jy, jz)), removed
 
 
 @njit(cache=True)
-def _book_pair(loss, effect, inv_mass, a, b, removed):
-    """Share a pair's loss by inverse mass, as ``StepContext.book`` does."""
-    share = inv_mass[a] / (inv_mass[a] + inv_mass[b])
+def _share(inv_mass, a, b):
+    """Return particle a's share of a pair's loss, by inverse mass (``StepContext.book``)."""
+    return inv_mass[a] / (inv_mass[a] + inv_mass[b])
+
+
+@njit(cache=True)
+def _book_pair(loss, effect, a, b, removed, share):
+    """Book a pair's loss to its particles, a taking ``share`` (``_share``)."""
     loss[effect, a] += removed * share
     loss[effect, b] += removed * (1.0 - share)
 
@@ -158,8 +187,12 @@ def _book_pair(loss, effect, inv_mass, a, b, removed):
 @njit(cache=True)
 def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_inward,
                       w_rest, w_mu, w_impact, struck, use_threshold, threshold, tolerance,
-                      strike, friction, planar, w_hit, w_normal, w_tangential, loss, totals):
-    """Solve one wall plane's contacts (distinct particles); return whether any approached."""
+                      strike, friction, planar, w_hit, w_normal, w_tangential, loss, totals,
+                      spin):
+    """Solve one wall plane's contacts (distinct particles); return whether any approached.
+
+    ``spin``: each particle's ``spin_factor`` (used with friction only).
+    """
     any_hit = False
     for c in range(start, stop):
         p, axis, inward = w_index[c], w_axis[c], w_inward[c]
@@ -186,8 +219,8 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
             nx = inward if axis == 0 else 0.0
             ny = inward if axis == 1 else 0.0
             nz = inward if axis == 2 else 0.0
-            tangential, lost = _friction(v, ang, inv_mass, radius, p, -1, nx, ny, nz,
-                                         magnitude, w_mu[c], planar)
+            tangential, lost = _friction_spun(v, ang, inv_mass, radius, p, -1, nx, ny, nz,
+                                              magnitude, w_mu[c], planar, spin[p], 0.0)
             loss[FRICTION, p] += lost
             totals[FRICTION] += lost
             w_tangential[c] += tangential
@@ -197,7 +230,8 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
 @njit(cache=True)
 def _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w_rest, w_mu,
                  w_impact, struck, use_threshold, threshold, tolerance, strike, friction,
-                 planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, first):
+                 planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, first,
+                 spin):
     """Solve every wall plane once, plane after plane; return whether any approached.
 
     On the ``first`` visit each plane's contacts keep the approach speed they
@@ -212,7 +246,7 @@ def _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w
         if _solve_wall_plane(v, ang, inv_mass, radius, w_start[plane], w_start[plane + 1],
                              w_index, w_axis, w_inward, w_rest, w_mu, w_impact, struck,
                              use_threshold, threshold, tolerance, strike, friction, planar,
-                             w_hit, w_normal, w_tangential, loss, totals):
+                             w_hit, w_normal, w_tangential, loss, totals, spin):
             any_hit = True
     return any_hit
 
@@ -295,41 +329,51 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                     single = False
     walls = w_start.size > 1
     first_wall_visit = True
+    # The loss shares and spin factors are fixed for the solve: computed once,
+    # not at each of up to ``iterations`` visits (the same values).
+    share = np.empty(m)
+    for k in range(m):
+        share[k] = _share(inv_mass, pi[k], pj[k])
+    spin = np.zeros(n)
+    if friction:
+        for p in range(n):
+            spin[p] = spin_factor(inv_mass, radius, p)
     for _ in range(iterations):
         applied = False
         for k in order:
             a, b = pi[k], pj[k]
             nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
-            e = rest[k]
-            if use_threshold:
-                fast = -_dot(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2],
-                             nx, ny, nz) >= threshold
-                if not (fast and (impact[k] or struck[a] or struck[b])):
-                    e = 0.0
-            magnitude, approach, removed = pair_impulse(v, inv_mass, a, b, nx, ny, nz, e,
-                                                        tolerance)
+            # The closing speed is read once: it decides both whether the pair
+            # gets an impulse and, against the threshold, its e.
+            approach = -_dot(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2],
+                             nx, ny, nz)
             if not approach > tolerance:
                 continue
+            e = rest[k]
+            if use_threshold:
+                if not (approach >= threshold and (impact[k] or struck[a] or struck[b])):
+                    e = 0.0
+            magnitude, removed = _apply_pair(v, inv_mass, a, b, nx, ny, nz, e, approach)
             if use_threshold and e > 0.0 and approach >= strike * threshold:
                 # A static particle never moves, so it passes no shock on.
                 struck[a] = dynamic[a]
                 struck[b] = dynamic[b]
             hit[k] = True
             applied = True
-            _book_pair(loss, RESTITUTION, inv_mass, a, b, removed)
+            _book_pair(loss, RESTITUTION, a, b, removed, share[k])
             totals[RESTITUTION] += removed
             summed_normal[k] += magnitude
             if friction:
-                tangential, lost = _friction(v, ang, inv_mass, radius, a, b, nx, ny, nz,
-                                             magnitude, mu[k], planar)
-                _book_pair(loss, FRICTION, inv_mass, a, b, lost)
+                tangential, lost = _friction_spun(v, ang, inv_mass, radius, a, b, nx, ny, nz,
+                                                  magnitude, mu[k], planar, spin[a], spin[b])
+                _book_pair(loss, FRICTION, a, b, lost, share[k])
                 totals[FRICTION] += lost
                 summed_tangential[k] += tangential
         if walls:
             if _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward,
                             w_rest, w_mu, w_impact, struck, use_threshold, threshold,
                             tolerance, strike, friction, planar, w_hit, w_normal,
-                            w_tangential, loss, totals, w_approach, first_wall_visit):
+                            w_tangential, loss, totals, w_approach, first_wall_visit, spin):
                 applied = True
             first_wall_visit = False
         if not applied or single:
@@ -337,16 +381,253 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
     if shock_order.size:
         _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w_rest,
                      w_mu, w_impact, struck, use_threshold, threshold, 0.0, strike, friction,
-                     planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, False)
+                     planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, False,
+                     spin)
         for _ in range(shock_passes):
             pushed = _shock_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order,
                                  threshold, summed_normal, loss, totals)
             _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward,
                          w_rest, w_mu, w_impact, struck, use_threshold, threshold, 0.0,
                          strike, friction, planar, w_hit, w_normal, w_tangential, loss,
-                         totals, w_approach, False)
+                         totals, w_approach, False, spin)
             if not pushed:
                 break
+
+
+@njit(cache=True)
+def line_of_action(ox, oy, oz, rx, ry, rz):
+    """Return (N, |offset|) of one offset, as ``narrowphase.line_of_action`` (same operations).
+
+    The offset is scaled by its largest component first; coincident centres
+    take -(relative velocity) as N, or +x when they do not move apart.
+    """
+    scale = max(abs(ox), abs(oy), abs(oz))
+    if scale != 0.0:
+        sx, sy, sz = ox / scale, oy / scale, oz / scale
+        norm = math.sqrt(_dot(sx, sy, sz, sx, sy, sz))
+        return sx / norm, sy / norm, sz / norm, scale * norm
+    rv_scale = max(abs(rx), abs(ry), abs(rz))
+    if rv_scale > 0.0:
+        ux, uy, uz = rx / rv_scale, ry / rv_scale, rz / rv_scale
+        norm = math.sqrt(_dot(ux, uy, uz, ux, uy, uz))
+        return -(ux / norm), -(uy / norm), -(uz / norm), 0.0
+    return 1.0, 0.0, 0.0, 0.0
+
+
+@njit(cache=True)
+def find_overlaps(position, velocity, radius, inv_mass, ci, cj, out_i, out_j, normal,
+                  penetration):
+    """Keep the candidate pairs that overlap (``narrowphase.find_contacts``); return how many.
+
+    Writes the kept pairs, their normals and penetrations to the front of the
+    output arrays (sized for every candidate), in candidate order.
+    """
+    kept = 0
+    for k in range(ci.size):
+        a, b = ci[k], cj[k]
+        ox = position[a, 0] - position[b, 0]
+        oy = position[a, 1] - position[b, 1]
+        oz = position[a, 2] - position[b, 2]
+        reach = radius[a] + radius[b]
+        # The numpy path's generous prefilter, kept so both keep the same pairs.
+        if not _dot(ox, oy, oz, ox, oy, oz) <= reach * reach * (1.0 + 1e-9):
+            continue
+        if not (inv_mass[a] + inv_mass[b]) > 0.0:
+            continue
+        nx, ny, nz, distance = line_of_action(
+            ox, oy, oz, velocity[a, 0] - velocity[b, 0], velocity[a, 1] - velocity[b, 1],
+            velocity[a, 2] - velocity[b, 2])
+        if not distance < reach:
+            continue
+        out_i[kept], out_j[kept] = a, b
+        normal[kept, 0], normal[kept, 1], normal[kept, 2] = nx, ny, nz
+        penetration[kept] = reach - distance
+        kept += 1
+    return kept
+
+
+@njit(cache=True)
+def _held(position, radius, p, dx, dy, dz, nx, ny, nz, low, high, dimensions):
+    """Say whether particle ``p`` moved by (dx, dy, dz) reaches a wall N points into.
+
+    As ``separation.held_by_walls`` for one particle (N: its push direction).
+    """
+    r = radius[p]
+    moved = (position[p, 0] + dx, position[p, 1] + dy, position[p, 2] + dz)
+    way = (nx, ny, nz)
+    for axis in range(dimensions):
+        x, d = moved[axis], way[axis]
+        if (x <= low[axis] + r and d < 0.0) or (x >= high[axis] - r and d > 0.0):
+            return True
+    return False
+
+
+@njit(cache=True)
+def _separate_pass(position, inv_mass, radius, pi, pj, normal, penetration, active, hold,
+                   low, high, dimensions, push, total, moves):
+    """One Jacobi projection pass over the ``active`` pairs (``separation.separate``).
+
+    Every push is computed from the positions before the pass, summed per
+    particle (all i sides in pair order, then all j sides, as numpy's
+    ``add.at``) and averaged over the pushes that move the particle.
+    """
+    n, m = position.shape[0], pi.size
+    for p in range(n):
+        total[p, 0] = total[p, 1] = total[p, 2] = 0.0
+        moves[p] = 0.0
+    for k in range(m):
+        if not active[k]:
+            continue
+        a, b = pi[k], pj[k]
+        w_a, w_b = inv_mass[a], inv_mass[b]
+        nx, ny, nz, pen = normal[k, 0], normal[k, 1], normal[k, 2], penetration[k]
+        if hold:
+            s = pen / (w_a + w_b)
+            sx, sy, sz = s * nx, s * ny, s * nz
+            held_a = _held(position, radius, a, w_a * sx, w_a * sy, w_a * sz, nx, ny, nz,
+                           low, high, dimensions)
+            held_b = _held(position, radius, b, -(w_b * sx), -(w_b * sy), -(w_b * sz), -nx,
+                           -ny, -nz, low, high, dimensions)
+            w_a, w_b = (0.0 if (held_a and not held_b and w_b > 0.0) else w_a,
+                        0.0 if (held_b and not held_a and w_a > 0.0) else w_b)
+        w_sum = w_a + w_b
+        push[k, 0] = pen * w_a / w_sum
+        push[k, 1] = pen * w_b / w_sum
+        if w_a > 0.0:
+            moves[a] += 1.0
+        if w_b > 0.0:
+            moves[b] += 1.0
+    for k in range(m):
+        if active[k]:
+            f, a = push[k, 0], pi[k]
+            total[a, 0] += f * normal[k, 0]
+            total[a, 1] += f * normal[k, 1]
+            total[a, 2] += f * normal[k, 2]
+    for k in range(m):
+        if active[k]:
+            f, b = push[k, 1], pj[k]
+            total[b, 0] += -(f * normal[k, 0])
+            total[b, 1] += -(f * normal[k, 1])
+            total[b, 2] += -(f * normal[k, 2])
+    for p in range(n):
+        if moves[p] > 0.0:
+            position[p, 0] += total[p, 0] / moves[p]
+            position[p, 1] += total[p, 1] / moves[p]
+            position[p, 2] += total[p, 2] / moves[p]
+
+
+@njit(cache=True)
+def _clamp_inside(position, radius, dynamic, p_axis, p_value, p_inward):
+    """Place dynamic particles found past a wall plane back on it, plane after plane."""
+    for q in range(p_axis.size):
+        axis, plane, inward = p_axis[q], p_value[q], p_inward[q]
+        for p in range(position.shape[0]):
+            if dynamic[p] and inward * (position[p, axis] - plane) < radius[p]:
+                position[p, axis] = plane + inward * radius[p]
+
+
+@njit(cache=True)
+def project_overlaps(position, velocity, inv_mass, radius, dynamic, pi, pj, normal0,
+                     penetration0, passes, hold, walls, low, high, dimensions, p_axis, p_value,
+                     p_inward):
+    """Run the separation stage's projection in place (``SeparationStage._project``).
+
+    ``passes`` Jacobi passes: the first on the narrowphase's normals and
+    penetrations, each later one on the pairs still overlapping, measured
+    again; with ``walls`` the particles are clamped back inside after each
+    pass. ``hold``: a particle its push would take into a wall stays put.
+    """
+    n, m = position.shape[0], pi.size
+    normal = normal0.copy()
+    penetration = penetration0.copy()
+    active = np.ones(m, dtype=np.bool_)
+    push = np.zeros((m, 2))
+    total = np.zeros((n, 3))
+    moves = np.zeros(n)
+    for step in range(passes):
+        if m:
+            if step > 0:
+                overlapping = False
+                for k in range(m):
+                    a, b = pi[k], pj[k]
+                    nx, ny, nz, distance = line_of_action(
+                        position[a, 0] - position[b, 0], position[a, 1] - position[b, 1],
+                        position[a, 2] - position[b, 2], velocity[a, 0] - velocity[b, 0],
+                        velocity[a, 1] - velocity[b, 1], velocity[a, 2] - velocity[b, 2])
+                    normal[k, 0], normal[k, 1], normal[k, 2] = nx, ny, nz
+                    penetration[k] = radius[a] + radius[b] - distance
+                    active[k] = penetration[k] > 0.0
+                    overlapping = overlapping or active[k]
+                if not overlapping and not walls:
+                    return
+            _separate_pass(position, inv_mass, radius, pi, pj, normal, penetration, active,
+                           hold, low, high, dimensions, push, total, moves)
+        if walls:
+            _clamp_inside(position, radius, dynamic, p_axis, p_value, p_inward)
+
+
+@njit(cache=True)
+def _root(parent, p):
+    """Return the root of ``p`` in a union-find forest, halving the path on the way."""
+    while parent[p] != p:
+        parent[p] = parent[parent[p]]
+        p = parent[p]
+    return p
+
+
+@njit(cache=True)
+def pay_for_lift(position, start, velocity, inv_mass, dynamic, pi, pj, added, budget):
+    """Take back what the projection's net lift adds per cluster; return J removed per particle.
+
+    The law of ``SeparationStage._pay_for_lift``; clusters are the connected
+    components of the pairs between two dynamic particles (union-find, the
+    partition ``separation.clusters`` finds), sums per cluster run in
+    particle order as numpy's ``bincount``.
+    """
+    n = position.shape[0]
+    parent = np.arange(n)
+    for k in range(pi.size):
+        a, b = pi[k], pj[k]
+        if dynamic[a] and dynamic[b]:
+            ra, rb = _root(parent, a), _root(parent, b)
+            if ra != rb:
+                parent[max(ra, rb)] = min(ra, rb)
+    cluster = np.empty(n, dtype=np.int64)
+    lifted = np.zeros(n)
+    spent = np.zeros(n)
+    for p in range(n):
+        c = _root(parent, p)
+        cluster[p] = c
+        lifted[c] += added[p]
+        spent[c] += budget[p]
+    raised = np.zeros(n)
+    up = np.zeros(n, dtype=np.bool_)
+    for p in range(n):
+        c = cluster[p]
+        if added[p] > 0.0 and lifted[c] - max(spent[c], 0.0) > 0.0:
+            up[p] = True
+            raised[c] += added[p]
+    removed = np.zeros(n)
+    for p in range(n):
+        if not up[p]:
+            continue
+        c = cluster[p]
+        owed = (lifted[c] - max(spent[c], 0.0)) * added[p] / raised[c]
+        mass = 1.0 / inv_mass[p]
+        mx = position[p, 0] - start[p, 0]
+        my = position[p, 1] - start[p, 1]
+        mz = position[p, 2] - start[p, 2]
+        norm = math.sqrt(mx * mx + my * my + mz * mz)
+        wx, wy, wz = mx / norm, my / norm, mz / norm
+        along = max(_dot(velocity[p, 0], velocity[p, 1], velocity[p, 2], wx, wy, wz), 0.0)
+        taken = min(owed, 0.5 * mass * along * along)
+        slower = math.sqrt(max(along * along - 2.0 * taken / mass, 0.0))
+        change = slower - along
+        velocity[p, 0] += change * wx
+        velocity[p, 1] += change * wy
+        velocity[p, 2] += change * wz
+        removed[p] = taken
+    return removed
 
 
 def _warm_up() -> None:
@@ -367,11 +648,23 @@ def _warm_up() -> None:
                    np.zeros(1, dtype=bool), np.zeros(1), np.zeros(1), np.zeros(1, dtype=bool),
                    np.zeros(1), np.zeros(1), np.zeros(1), np.zeros((3, 2)), np.zeros(3))
     greedy_colors(pi, pj, dynamic, 32)
+    # Narrowphase and separation (a pair 1.9 m apart with radii 1 m overlaps).
+    position = np.array([[0.0, 0.0, 0.0], [1.9, 0.0, 0.0]])
+    out_i, out_j = np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64)
+    found_normal, found_penetration = np.zeros((1, 3)), np.zeros(1)
+    find_overlaps(position, v, radius, inv_mass, pi, pj, out_i, out_j, found_normal,
+                  found_penetration)
+    low, high = np.full(3, -10.0), np.full(3, 10.0)
+    start = position.copy()
+    project_overlaps(position, v, inv_mass, radius, dynamic, pi, pj, found_normal,
+                     found_penetration, 2, True, True, low, high, 3, np.zeros(1, dtype=np.int64),
+                     np.full(1, -10.0), np.ones(1))
+    pay_for_lift(position, start, v, inv_mass, dynamic, pi, pj, np.ones(2), np.zeros(2))
 
 
 def _kernels() -> list:
     from .coloring import greedy_colors
-    return [solve_contacts, greedy_colors]
+    return [solve_contacts, greedy_colors, find_overlaps, project_overlaps, pay_for_lift]
 
 
 _PREPARED = False

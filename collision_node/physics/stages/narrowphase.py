@@ -4,13 +4,21 @@ As in the lecture: contact when |p1 - p2| < r1 + r2, line of action
 N = (p1 - p2) / |p1 - p2|. The distance is computed after scaling each
 offset by its largest component, so offsets of 1e-300 m (whose squares
 underflow to zero) still give an exact unit normal.
+
+``find_contacts`` is the vectorised statement; the stage runs the same
+operations compiled (``contact_kernels.find_overlaps``, backend 'kernel',
+the default), which keeps the same pairs with the same normals and
+penetrations (``test/test_separation_kernels.py``).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from ..contact_kernels import find_overlaps
 from ..step import Contacts, Stage, StepContext
+
+BACKENDS = ('kernel', 'numpy')
 
 
 def line_of_action(offset: np.ndarray, relative_velocity: np.ndarray
@@ -63,16 +71,44 @@ def find_contacts(position: np.ndarray, velocity: np.ndarray, radius: np.ndarray
                     penetration=(reach - distance)[overlapping])
 
 
+def find_contacts_compiled(position: np.ndarray, velocity: np.ndarray, radius: np.ndarray,
+                           inv_mass: np.ndarray, i: np.ndarray, j: np.ndarray) -> Contacts:
+    """Return what ``find_contacts`` returns, from one compiled pass over the candidates."""
+    m = i.shape[0]
+    if m == 0:
+        return Contacts.empty()
+    out_i, out_j = np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64)
+    normal, penetration = np.empty((m, 3)), np.empty(m)
+    kept = find_overlaps(np.ascontiguousarray(position, dtype=float),
+                         np.ascontiguousarray(velocity, dtype=float),
+                         np.ascontiguousarray(radius, dtype=float),
+                         np.ascontiguousarray(inv_mass, dtype=float),
+                         np.ascontiguousarray(i, dtype=np.int64),
+                         np.ascontiguousarray(j, dtype=np.int64), out_i, out_j, normal,
+                         penetration)
+    if kept == 0:
+        return Contacts.empty()
+    return Contacts(i=out_i[:kept], j=out_j[:kept], normal=normal[:kept],
+                    penetration=penetration[:kept])
+
+
 class NarrowphaseStage(Stage):
     """Keep the candidate pairs that overlap; record the deepest overlap."""
 
     name = 'narrowphase'
 
+    def __init__(self, backend: str = 'kernel') -> None:
+        """Choose the compiled pass ('kernel') or the vectorised reference ('numpy')."""
+        if backend not in BACKENDS:
+            raise ValueError(f'backend must be one of {BACKENDS}, got {backend!r}')
+        self.backend = backend
+
     def run(self, ctx: StepContext) -> None:
         """Store contacts on the context."""
         s = ctx.state
-        ctx.contacts = find_contacts(s.position, s.velocity, s.radius, s.inv_mass,
-                                     ctx.pair_i, ctx.pair_j)
+        find = find_contacts_compiled if self.backend == 'kernel' else find_contacts
+        ctx.contacts = find(s.position, s.velocity, s.radius, s.inv_mass, ctx.pair_i,
+                            ctx.pair_j)
         if len(ctx.contacts):
             deepest = float(ctx.contacts.penetration.max())
             ctx.stats.max_penetration = max(ctx.stats.max_penetration, deepest)

@@ -38,6 +38,14 @@ used to be the whole world's). What such speeds cannot pay (resting or
 falling particles) stays added. Everything is booked as 'separation' (a
 net addition as a negative loss), from each particle's displacement,
 -m g . dx, so the energy balance closes, also far from the origin.
+
+Two backends do exactly this. ``kernel`` (the default) runs the passes,
+wall clamps and the per-cluster budget (clusters by union-find) in
+compiled loops (``contact_kernels.project_overlaps`` and ``pay_for_lift``),
+with the same floating-point operations in the same order as ``numpy``,
+the vectorised statement kept below as the reference;
+``test/test_separation_kernels.py`` asserts identical positions, velocities
+and bookings.
 """
 
 from __future__ import annotations
@@ -46,13 +54,18 @@ from typing import Optional
 
 import numpy as np
 
+from ..contact_kernels import pay_for_lift, project_overlaps
 from ..effects import Walls
 from ..energy import lift
-from ..step import Stage, StepContext
+from ..step import Contacts, Stage, StepContext
 from .narrowphase import line_of_action
 
 # Projection passes per step under gravity (one without: the lecture's).
 GRAVITY_PASSES = 4
+# 'kernel' (compiled: contact_kernels.project_overlaps and pay_for_lift) and
+# 'numpy' (the vectorised reference); test/test_separation_kernels.py asserts
+# they move and book the same.
+BACKENDS = ('kernel', 'numpy')
 
 
 def held_by_walls(position: np.ndarray, radius: np.ndarray, push: np.ndarray, walls: Walls,
@@ -115,9 +128,12 @@ class SeparationStage(Stage):
 
     name = 'separation'
 
-    def __init__(self, walls: Optional[Walls] = None) -> None:
+    def __init__(self, walls: Optional[Walls] = None, backend: str = 'kernel') -> None:
         """Keep the wall planes to project particles back inside (None: no walls)."""
+        if backend not in BACKENDS:
+            raise ValueError(f'backend must be one of {BACKENDS}, got {backend!r}')
         self.walls = walls
+        self.backend = backend
 
     def run(self, ctx: StepContext) -> None:
         """Move positions in place."""
@@ -134,10 +150,23 @@ class SeparationStage(Stage):
         self._project(ctx, has_pairs)
         s = ctx.state
         added = lift(s.inv_mass, s.position - start, gravity)   # delta U per particle
-        cluster = clusters(len(s), s.dynamic, c.i, c.j) if has_pairs else \
-            np.arange(len(s))
         budget = ctx.losses if ctx.losses is not None else np.zeros(len(s))
-        paid = self._pay_for_lift(s, start, added, cluster, budget)
+        if self.backend == 'kernel':
+            i, j = (c.i, c.j) if has_pairs else (np.zeros(0, np.int64), np.zeros(0, np.int64))
+            velocity = np.ascontiguousarray(s.velocity, dtype=float)
+            paid = pay_for_lift(np.ascontiguousarray(s.position, dtype=float), start, velocity,
+                                np.ascontiguousarray(s.inv_mass, dtype=float),
+                                np.ascontiguousarray(s.dynamic, dtype=np.bool_),
+                                np.ascontiguousarray(i, dtype=np.int64),
+                                np.ascontiguousarray(j, dtype=np.int64),
+                                np.ascontiguousarray(added, dtype=float),
+                                np.ascontiguousarray(budget, dtype=float))
+            if velocity is not s.velocity:
+                s.velocity[...] = velocity
+        else:
+            cluster = clusters(len(s), s.dynamic, c.i, c.j) if has_pairs else \
+                np.arange(len(s))
+            paid = self._pay_for_lift(s, start, added, cluster, budget)
         ctx.book('separation', paid - added, np.arange(len(s)))
 
     @staticmethod
@@ -195,6 +224,9 @@ class SeparationStage(Stage):
         # the push to the partner after each clamp (and holding there made a settling
         # pile jitter above its rest bound, test_effects).
         held_by = self.walls if passes == 1 else None
+        if self.backend == 'kernel':
+            self._project_kernel(ctx, has_pairs, passes, held_by is not None)
+            return
         for k in range(passes):
             if has_pairs:
                 if k == 0:
@@ -212,6 +244,33 @@ class SeparationStage(Stage):
                 separate(s.position, s.inv_mass, i, j, normal, penetration, s.radius,
                          held_by, ctx.dimensions)
             self._clamp_inside_walls(ctx)
+
+    def _project_kernel(self, ctx: StepContext, has_pairs: bool, passes: int,
+                        hold: bool) -> None:
+        """Run ``_project`` in one compiled call (``contact_kernels.project_overlaps``)."""
+        s, c = ctx.state, ctx.contacts
+        if not has_pairs:
+            c = Contacts.empty()
+        dims = ctx.dimensions
+        walls = self.walls
+        planes = walls.planes(dims) if walls is not None else []
+        low = np.full(3, -np.inf) if walls is None else np.asarray(walls.low, dtype=float)
+        high = np.full(3, np.inf) if walls is None else np.asarray(walls.high, dtype=float)
+        position = np.ascontiguousarray(s.position, dtype=float)
+        project_overlaps(position, np.ascontiguousarray(s.velocity, dtype=float),
+                         np.ascontiguousarray(s.inv_mass, dtype=float),
+                         np.ascontiguousarray(s.radius, dtype=float),
+                         np.ascontiguousarray(s.dynamic, dtype=np.bool_),
+                         np.ascontiguousarray(c.i, dtype=np.int64),
+                         np.ascontiguousarray(c.j, dtype=np.int64),
+                         np.ascontiguousarray(c.normal, dtype=float),
+                         np.ascontiguousarray(c.penetration, dtype=float), passes, hold,
+                         walls is not None, low, high, dims,
+                         np.array([p[0] for p in planes], dtype=np.int64),
+                         np.array([p[1] for p in planes], dtype=float),
+                         np.array([p[2] for p in planes], dtype=float))
+        if position is not s.position:
+            s.position[...] = position
 
     def _clamp_inside_walls(self, ctx: StepContext) -> None:
         """Place particles found past a wall plane back on it."""

@@ -1,0 +1,204 @@
+"""The compiled narrowphase and separation do exactly what their numpy statements do.
+
+``contact_kernels.find_overlaps``, ``project_overlaps`` and ``pay_for_lift``
+write the narrowphase's contact test and the separation stage's projection,
+wall clamp and per-cluster lift budget one particle or pair at a time. Here
+both backends run on the same inputs (random overlaps, and every step of the
+shipped pile pouring and settling) and must keep the same contacts and give
+the same positions, velocities and booked energy.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from collision_node import World
+from collision_node.physics.accuracy import parse_accuracy
+from collision_node.physics.effects import Effects, Walls
+from collision_node.physics.scene import load_scene
+from collision_node.physics.stages.narrowphase import (
+    NarrowphaseStage, find_contacts, find_contacts_compiled)
+from collision_node.physics.stages.separation import SeparationStage
+from collision_node.physics.state import ParticleState
+from collision_node.physics.step import StepContext, StepStats
+
+GRAVITY = np.array([0.0, -9.81, 0.0])
+
+
+def overlapping_state(rng: np.random.Generator, n: int, dims: int, box: float) -> ParticleState:
+    """Return n particles packed into a box so that many overlap; some static, two coincident."""
+    position = np.zeros((n, 3))
+    position[:, :dims] = rng.uniform(0.0, box, size=(n, dims))
+    position[1] = position[0]                         # coincident, moving apart
+    position[3] = position[2]                         # coincident, at rest relative
+    velocity = np.zeros((n, 3))
+    velocity[:, :dims] = rng.normal(scale=0.5, size=(n, dims))
+    velocity[3] = velocity[2]
+    inv_mass = rng.uniform(0.5, 4.0, n)
+    inv_mass[rng.choice(n, n // 10, replace=False)] = 0.0
+    inv_mass[:4] = 1.0
+    radius = rng.uniform(0.05, 0.12, n)
+    return ParticleState(ids=np.arange(n), position=position, velocity=velocity,
+                         radius=radius, inv_mass=inv_mass)
+
+
+def all_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return every pair (i < j) as candidates."""
+    i, j = np.triu_indices(n, 1)
+    return i.astype(np.int64), j.astype(np.int64)
+
+
+def context(state: ParticleState, effects: Effects, dims: int, losses=None) -> StepContext:
+    """Return a step context on ``state`` (the per-particle losses given or zero)."""
+    ctx = StepContext(state=state, dt=0.01, dimensions=dims, effects=effects,
+                      accuracy=parse_accuracy('fast', 'test'), stats=StepStats())
+    if losses is not None:
+        ctx.losses = losses.copy()
+    return ctx
+
+
+def assert_contacts_equal(a, b) -> None:
+    """Assert two contact sets are the same pairs with the same normals and overlaps."""
+    np.testing.assert_array_equal(a.i, b.i)
+    np.testing.assert_array_equal(a.j, b.j)
+    np.testing.assert_array_equal(a.normal, b.normal)
+    np.testing.assert_array_equal(a.penetration, b.penetration)
+
+
+def assert_same_outcome(ref: StepContext, new: StepContext) -> None:
+    """Assert the two backends moved, slowed and booked the same.
+
+    Bit for bit: the kernels do the same floating-point operations in the
+    same order (sums per particle and per cluster in numpy's order).
+    """
+    np.testing.assert_array_equal(new.state.position, ref.state.position)
+    np.testing.assert_array_equal(new.state.velocity, ref.state.velocity)
+    assert new.stats.dissipated == ref.stats.dissipated
+    if ref.losses is None:
+        assert new.losses is None
+    else:
+        np.testing.assert_array_equal(new.losses, ref.losses)
+
+
+def run_both(state: ParticleState, effects: Effects, dims: int, contacts, losses=None):
+    """Run separation with both backends on copies; return (numpy ctx, kernel ctx)."""
+    out = []
+    for backend in ('numpy', 'kernel'):
+        ctx = context(copy.deepcopy(state), effects, dims, losses)
+        ctx.contacts = contacts
+        SeparationStage(walls=effects.walls, backend=backend).run(ctx)
+        out.append(ctx)
+    return out
+
+
+@pytest.mark.parametrize('dims', [2, 3])
+@pytest.mark.parametrize('seed', range(4))
+def test_compiled_narrowphase_keeps_the_same_contacts(dims, seed):
+    rng = np.random.default_rng(seed)
+    state = overlapping_state(rng, 120, dims, 1.0)
+    i, j = all_pairs(len(state))
+    args = (state.position, state.velocity, state.radius, state.inv_mass, i, j)
+    ref = find_contacts(*args)
+    assert len(ref) > 50                                 # a crowded box: many overlaps
+    assert_contacts_equal(find_contacts_compiled(*args), ref)
+    # The fallback lines of action of the coincident pairs are exercised.
+    first = (ref.i == 0) & (ref.j == 1)
+    assert first.sum() == 1
+    rest = (ref.i == 2) & (ref.j == 3)
+    np.testing.assert_array_equal(ref.normal[rest], [[1.0, 0.0, 0.0]])
+
+
+def test_compiled_narrowphase_finds_nothing_without_overlap():
+    state = overlapping_state(np.random.default_rng(1), 10, 3, 1.0)
+    state.position[:, 0] = np.arange(10) * 10.0
+    i, j = all_pairs(10)
+    assert len(find_contacts_compiled(state.position, state.velocity, state.radius,
+                                      state.inv_mass, i, j)) == 0
+    none = np.zeros(0, dtype=np.int64)
+    assert len(find_contacts_compiled(state.position, state.velocity, state.radius,
+                                      state.inv_mass, none, none)) == 0
+
+
+@pytest.mark.parametrize('dims', [2, 3])
+@pytest.mark.parametrize('gravity', [False, True])
+@pytest.mark.parametrize('walls', [False, True])
+@pytest.mark.parametrize('seed', range(3))
+def test_compiled_separation_equals_numpy_on_random_overlaps(dims, gravity, walls, seed):
+    rng = np.random.default_rng(100 + seed)
+    state = overlapping_state(rng, 150, dims, 1.0)
+    # Open above the particles: the floor and the static particles lift, nothing presses down.
+    wall = Walls(low=np.array([0.0, 0.0, -np.inf if dims == 2 else 0.0]),
+                 high=np.array([1.0, 3.0, np.inf if dims == 2 else 1.0]), restitution=0.5)
+    effects = Effects(gravity=GRAVITY if gravity else None, walls=wall if walls else None)
+    i, j = all_pairs(len(state))
+    contacts = find_contacts(state.position, state.velocity, state.radius, state.inv_mass,
+                             i, j)
+    # Losses that pay part of the lift in some clusters and none in others.
+    losses = rng.uniform(0.0, 2e-3, len(state)) * (rng.uniform(size=len(state)) < 0.5)
+    ref, new = run_both(state, effects, dims, contacts, losses if gravity else None)
+    moved = np.abs(ref.state.position - state.position).max(axis=1) > 0.0
+    assert moved.sum() > 30                              # the projection did work
+    assert_same_outcome(ref, new)
+    if gravity:
+        # Some lift was paid from speed, some left as an addition.
+        assert ref.stats.dissipated['separation'] != 0.0
+        assert np.any(ref.state.velocity != state.velocity)
+
+
+def test_compiled_separation_holds_particles_at_walls_like_numpy():
+    # No gravity, one pass: a light ball pressed against the floor by a heavy one stays put.
+    state = ParticleState(ids=np.arange(2), position=np.array([[0.5, 0.1, 0.0],
+                                                               [0.5, 0.25, 0.0]]),
+                          velocity=np.zeros((2, 3)), radius=np.array([0.1, 0.1]),
+                          inv_mass=np.array([10.0, 0.1]))
+    wall = Walls(low=np.array([0.0, 0.0, -np.inf]), high=np.array([1.0, 1.0, np.inf]))
+    effects = Effects(walls=wall)
+    contacts = find_contacts(state.position, state.velocity, state.radius, state.inv_mass,
+                             np.array([0]), np.array([1]))
+    ref, new = run_both(state, effects, 2, contacts)
+    assert ref.state.position[0, 1] == 0.1               # held on the floor
+    assert ref.state.position[1, 1] == pytest.approx(0.3)
+    assert_same_outcome(ref, new)
+
+
+def test_compiled_stages_equal_numpy_at_every_step_of_the_pile():
+    # The shipped pile poured and settling (fast): at every step both backends of the
+    # narrowphase and the separation run on the same context and must agree.
+    world = World(load_scene('pile').with_accuracy(parse_accuracy('fast', 'test')))
+    stages = world.pipeline.stages
+    checked = {'narrowphase': 0, 'separation': 0}
+
+    class Both:
+        def __init__(self, stage, reference):
+            self.stage, self.reference, self.name = stage, reference, stage.name
+
+        def run(self, ctx):
+            twin = copy.copy(ctx)
+            twin.state, twin.stats = copy.deepcopy(ctx.state), ctx.stats.copy()
+            twin.losses = None if ctx.losses is None else ctx.losses.copy()
+            self.reference.run(twin)
+            self.stage.run(ctx)
+            if self.name == 'narrowphase':
+                assert_contacts_equal(ctx.contacts, twin.contacts)
+            else:
+                assert_same_outcome(twin, ctx)
+            checked[self.name] += 1
+
+    for k, stage in enumerate(stages):
+        if isinstance(stage, NarrowphaseStage):
+            stages[k] = Both(stage, NarrowphaseStage(backend='numpy'))
+        elif isinstance(stage, SeparationStage):
+            stages[k] = Both(stage, SeparationStage(walls=stage.walls, backend='numpy'))
+    world.step(240)
+    assert checked == {'narrowphase': 240, 'separation': 240}
+    assert world.stats.dissipated['separation'] != 0.0
+
+
+def test_backends_are_named():
+    with pytest.raises(ValueError, match='backend'):
+        SeparationStage(backend='fortran')
+    with pytest.raises(ValueError, match='backend'):
+        NarrowphaseStage(backend='fortran')
