@@ -16,8 +16,9 @@ client. Four parts, printed as one Markdown table:
 (b) ``--garbage`` malformed requests cycling through every kind below
     (YAML alias bombs, nesting 5000 deep, 1 MiB strings, random text,
     invalid UTF-8 sent as raw CDR, absurd numbers, wrong types): answers,
-    rejections per second, the node's resident memory (VmRSS before and
-    after, VmHWM peak) and whether it survived.
+    rejections per second, the node's CPU time meanwhile, its resident
+    memory (VmRSS before, after and 2 s later, VmHWM peak) and whether it
+    survived.
 (c) real-time factor measured from ``/clock`` against wall time at
     ``publish_rate`` 30 and 1000 on a gas of ``--rtf-particles``, before and
     after a stall (a spawn of ``--stall-particles`` that is rejected at its
@@ -68,6 +69,7 @@ GAS_RADIUS = 0.01             # m
 GAS_FRACTION = 0.05           # volume fraction of the latency world's gas
 GAS_SPEED = 0.1               # m/s
 DT = 1.0 / 60.0               # s, every bench scene
+SETTLE_SECONDS = 2.0          # s after the garbage flood's last answer, memory read again
 # Answers are taken with KEEP_ALL: the bench must not lose what the node sent.
 ANSWER_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
@@ -202,6 +204,16 @@ class NodeProcess:
         except OSError:
             return None
         return None
+
+    def cpu_seconds(self) -> Optional[float]:
+        """Return the CPU time the process used so far, every thread (None once it is gone)."""
+        try:
+            with open(f'/proc/{self.process.pid}/stat', encoding='ascii') as stat:
+                fields = stat.read().rsplit(')', 1)[1].split()
+        except OSError:
+            return None
+        # utime and stime are fields 14 and 15 of stat(5); the split starts at field 3.
+        return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
     def tail(self, lines: int = 3) -> str:
         """Return the last lines the node wrote."""
@@ -400,7 +412,7 @@ def garbage_flood(client: Client, node: NodeProcess, count: int, timeout: float,
     kinds = garbage_kinds()
     raw = client.node.create_publisher(String, 'spawn', COMMAND_QOS)
     client.wait(lambda: raw.get_subscription_count() > 0, timeout, node)
-    rss_before = node.memory_kib()
+    rss_before, cpu_before = node.memory_kib(), node.cpu_seconds()
     start = len(client.events)
     sent = {name: 0 for name, _ in kinds}
     t0 = time.monotonic()
@@ -425,8 +437,11 @@ def garbage_flood(client: Client, node: NodeProcess, count: int, timeout: float,
     answers = answers_since(client, start)
     t_last = answers[-1][0] if answers else time.monotonic()
     rejected = sum(1 for _, e in answers if not e.get('accepted', False))
-    rss_after, hwm = node.memory_kib(), node.memory_kib('VmHWM')
+    rss_after, hwm, cpu_after = node.memory_kib(), node.memory_kib('VmHWM'), node.cpu_seconds()
     client.node.destroy_publisher(raw)
+    # The node's memory a while later: what it keeps, not what it is still freeing.
+    client.spin(SETTLE_SECONDS)
+    rss_settled = node.memory_kib()
 
     def mib(kib: Optional[int]) -> str:
         return '-' if kib is None else f'{kib / 1024:.0f} MiB'
@@ -435,8 +450,12 @@ def garbage_flood(client: Client, node: NodeProcess, count: int, timeout: float,
                                    f'{total // len(kinds)}+ each) in {t_published - t0:.2f} s'),
         ('b', 'answers (rejections) / published', f'{len(answers)} ({rejected}) / {total}'),
         ('b', 'rejections per second', f'{rejected / max(t_last - t0, 1e-9):.0f}'),
-        ('b', 'node VmRSS before / after, VmHWM', f'{mib(rss_before)} / {mib(rss_after)}, '
-                                                  f'{mib(hwm)}'),
+        ('b', f'node VmRSS before / after / {SETTLE_SECONDS:g} s later, VmHWM',
+         f'{mib(rss_before)} / {mib(rss_after)} / {mib(rss_settled)}, {mib(hwm)}'),
+        ('b', 'node CPU time (all threads) from the first request to the last answer',
+         '-' if cpu_before is None or cpu_after is None else
+         f'{cpu_after - cpu_before:.2f} s ({1e3 * (cpu_after - cpu_before) / total:.2f} ms '
+         'per request)'),
         ('b', 'node', 'alive' if node.alive() else
          f'DIED (exit {node.process.returncode}) during "{died_at or "the answers"}": '
          f'{node.tail()}'),

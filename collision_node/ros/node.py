@@ -9,6 +9,8 @@ tabled in the README (section "The ROS 2 node").
 from __future__ import annotations
 
 import json
+import os
+import tempfile
 import time
 from typing import Any, Optional
 
@@ -38,7 +40,8 @@ from .commands import CommandInterface
 from .pacing import Lag, Pacer, RateMeter, STEP_BUDGET
 from .parameters import (as_double, DEFAULT_SCENE, integers_as_doubles, invalid_parameter,
                          PARAMETERS)
-from .qos import STATE_QOS, STATUS_QOS, VELOCITY_QOS
+from .qos import (FASTDDS_PROFILES_XML, own_fastdds_profiles, STATE_QOS, STATUS_QOS,
+                  VELOCITY_QOS)
 from .reports import Reports
 from .status import status_report
 
@@ -249,10 +252,22 @@ def main(args: Optional[list[str]] = None) -> int:
     code = check_command_line(args)
     if code is not None:
         return code
+    profiles = None
+    if own_fastdds_profiles(os.environ):
+        # Read when the node's DDS participant is created (qos.py says why).
+        with tempfile.NamedTemporaryFile('w', prefix='collision_node_fastdds_', suffix='.xml',
+                                         delete=False) as profiles:
+            profiles.write(FASTDDS_PROFILES_XML)
+        os.environ.update(RMW_FASTRTPS_USE_QOS_FROM_XML='1',
+                          FASTRTPS_DEFAULT_PROFILES_FILE=profiles.name)
     rclpy.init(args=args)
     node = None
     try:
-        node = CollisionNode()
+        try:
+            node = CollisionNode()
+        finally:
+            if profiles is not None:
+                os.unlink(profiles.name)
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
