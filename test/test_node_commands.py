@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Empty, String
 from std_srvs.srv import Trigger
 
+from collision_node.ros.commands import LOG_PERIOD
 from msg_adapters import state_from_point_cloud
 from node_harness import NodeUnderTest, output
 
@@ -165,6 +167,9 @@ def test_bad_spawn_is_rejected_whole_and_the_world_is_unchanged(fresh, text, rea
 
 
 def test_a_rejection_logs_exactly_one_warning(fresh):
+    # The log keeps one refusal per LOG_PERIOD (all are answered); earlier tests'
+    # refusals must not share this one's period.
+    time.sleep(LOG_PERIOD)
     event = spawn(fresh, '{position: [0, 0], radius: 0.1, mass: 1, marker_7f3a: 1}')
     assert not event['accepted']
     world(fresh)           # the node has moved on to later ticks
