@@ -1,6 +1,7 @@
 """Load benchmark of the node: spawn floods, garbage input, real-time factor, latency.
 
     python -m collision_node.bench node-load [--spawns 10000] [--garbage 10000]
+        [--without TEXT] [--floor]
         [--particles 10000] [--latency-samples 50] [--rtf-particles 1000]
         [--rtf-seconds 5] [--stall-particles 20000] [--timeout 60]
 
@@ -52,13 +53,14 @@ from geometry_msgs.msg import PoseArray
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Empty, String
 
 from msg_adapters import seconds_from_stamp
 from msg_adapters.cdr import CdrWriter
+from msg_adapters.strings import string_bytes
 
 from ..ros.qos import COMMAND_QOS, STATE_QOS, STATUS_QOS
 
@@ -179,15 +181,16 @@ def garbage_kinds() -> list[tuple[str, Callable[[int, random.Random], Any]]]:
 class NodeProcess:
     """The node in a process of its own on ``domain_id``."""
 
-    def __init__(self, scene: Path, domain_id: int, parameters: dict[str, str]) -> None:
-        """Start ``python -m collision_node.ros.node`` on the scene with the parameters."""
+    def __init__(self, scene: Path, domain_id: int, parameters: dict[str, str],
+                 command: tuple[str, ...] = ('-m', 'collision_node.ros.node')) -> None:
+        """Start ``python -m collision_node.ros.node`` (or ``command``) on the scene."""
         self.log = tempfile.TemporaryFile('w+')
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id),
                    ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
         args = ['--ros-args', '-p', f'scene:={scene}']
         for name, value in parameters.items():
             args += ['-p', f'{name}:={value}']
-        self.process = subprocess.Popen([sys.executable, '-m', 'collision_node.ros.node', *args],
+        self.process = subprocess.Popen([sys.executable, *command, *args],
                                         env=env, stdout=self.log, stderr=subprocess.STDOUT)
 
     def alive(self) -> bool:
@@ -315,11 +318,16 @@ class Client:
 
 
 def start_node(scene_text: str, workdir: Path, name: str, domain_id: int,
-               timeout: float) -> tuple[NodeProcess, Client]:
-    """Write the scene, start the node and a client; wait for its status and subscriptions."""
+               timeout: float, floor: bool = False) -> tuple[NodeProcess, Client]:
+    """Write the scene, start the node and a client; wait for its status and subscriptions.
+
+    ``floor`` starts :func:`responder` in the node's place.
+    """
     path = workdir / f'{name}.yaml'
     path.write_text(scene_text)
-    node = NodeProcess(path, domain_id, {})
+    node = NodeProcess(path, domain_id, {}, ('-m', 'collision_node.bench.node_load',
+                                             RESPONDER) if floor else
+                       ('-m', 'collision_node.ros.node'))
     client = Client(domain_id)
     ready = client.wait(lambda: client.statuses and client.spawn.get_subscription_count() > 0
                         and client.reset.get_subscription_count() > 0, timeout, node)
@@ -406,10 +414,14 @@ def spawn_flood(client: Client, node: NodeProcess, count: int, timeout: float) -
 
 
 def garbage_flood(client: Client, node: NodeProcess, count: int, timeout: float,
-                  seed: int = 5) -> list[Row]:
-    """Part (b): ``count`` malformed requests of every kind; answers, rate and memory."""
+                  seed: int = 5, without: tuple[str, ...] = ()) -> list[Row]:
+    """Part (b): ``count`` malformed requests of every kind; answers, rate and memory.
+
+    ``without`` leaves out the kinds whose name contains one of its texts.
+    """
     rng = random.Random(seed)
-    kinds = garbage_kinds()
+    kinds = [(name, make) for name, make in garbage_kinds()
+             if not any(text in name for text in without)]
     raw = client.node.create_publisher(String, 'spawn', COMMAND_QOS)
     client.wait(lambda: raw.get_subscription_count() > 0, timeout, node)
     rss_before, cpu_before = node.memory_kib(), node.cpu_seconds()
@@ -572,6 +584,50 @@ def spawn_latency(client: Client, node: NodeProcess, samples: int, particles: in
     return rows
 
 
+# -- the floor: a stand-in that only takes and answers ------------------------
+
+RESPONDER = '--responder'
+
+
+def responder() -> int:
+    """Stand in for the node: take every spawn raw and answer it with a fixed refusal.
+
+    It takes requests as the node does (raw, draining the queue in one
+    callback) and publishes a pre-serialised answer, but reads nothing: the
+    rate it reaches under ``--floor`` is what the client and the middleware
+    allow, the ceiling of the node's own rate on the same machine.
+    """
+    rclpy.init()
+    node = rclpy.create_node(NODE_NAME)
+    events = node.create_publisher(String, 'events', COMMAND_QOS)
+    status = node.create_publisher(String, 'status', STATUS_QOS)
+    seq = [0]
+
+    def answer(request: str) -> None:
+        seq[0] += 1
+        events.publish(string_bytes(f'{{"seq": {seq[0]}, "request": "{request}", '
+                                    '"request_id": null, "accepted": false, '
+                                    '"reason": "floor", "particles": 0}'))
+
+    def on_spawn(_: bytes) -> None:
+        answer('spawn')
+        with spawn.handle:
+            while spawn.handle.take_message(String, True) is not None:
+                answer('spawn')
+
+    spawn = node.create_subscription(String, 'spawn', on_spawn, COMMAND_QOS, raw=True)
+    node.create_subscription(Empty, 'reset', lambda _: answer('reset'), COMMAND_QOS)
+    node.create_timer(0.5, lambda: status.publish(String(data='{}')))
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
 # -- command ----------------------------------------------------------------
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -580,6 +636,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='(a) valid single-particle spawns (default 10000)')
     parser.add_argument('--garbage', type=int, default=10_000, metavar='N',
                         help='(b) malformed requests (default 10000)')
+    parser.add_argument('--without', action='append', default=[], metavar='TEXT',
+                        help='(b) leave out the garbage kinds whose name contains TEXT, '
+                             'e.g. "1 MiB" (repeatable)')
+    parser.add_argument('--floor', action='store_true',
+                        help='(b only) flood a stand-in that answers without reading, to '
+                             'measure what the client and the middleware allow')
     parser.add_argument('--rtf-particles', type=int, default=1_000, metavar='N',
                         help='(c) gas particles while the real-time factor is measured '
                              '(default 1000)')
@@ -608,6 +670,14 @@ def run(args: argparse.Namespace) -> int:
         if getattr(args, name) < 1:
             print(f'node-load: --{name.replace("_", "-")} must be >= 1', file=sys.stderr)
             return 2
+    kinds = [name for name, _ in garbage_kinds()
+             if not any(text in name for text in args.without)]
+    if not kinds:
+        print('node-load: --without leaves no garbage kind', file=sys.stderr)
+        return 2
+    if args.floor and parts != {'b'}:
+        print('node-load: --floor runs part b only (--parts b)', file=sys.stderr)
+        return 2
     if not parts <= set('abcd') or not parts:
         print(f'node-load: --parts takes letters of abcd, got {args.parts!r}', file=sys.stderr)
         return 2
@@ -619,7 +689,8 @@ def run(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(prefix='node_load_') as workdir:
         if parts & set('abc'):
             text = box_scene_text(max(args.spawns + 1, args.rtf_particles))
-            node, client = start_node(text, Path(workdir), 'box', domain_id, args.timeout)
+            node, client = start_node(text, Path(workdir), 'box', domain_id, args.timeout,
+                                      args.floor)
             try:
                 if 'a' in parts:
                     rows += spawn_flood(client, node, args.spawns, args.timeout)
@@ -627,7 +698,8 @@ def run(args: argparse.Namespace) -> int:
                     start = len(client.events)
                     client.reset.publish(Empty())
                     client.wait(lambda: len(client.events) > start, args.timeout, node)
-                    rows += garbage_flood(client, node, args.garbage, args.timeout)
+                    rows += garbage_flood(client, node, args.garbage, args.timeout,
+                                          without=tuple(args.without))
                 if 'c' in parts and node.alive():
                     rows += rtf_around_stall(client, node, args.rtf_particles,
                                              args.rtf_seconds, args.stall_particles,
@@ -655,6 +727,9 @@ def run(args: argparse.Namespace) -> int:
 
 def main(argv: Optional[list[str]] = None) -> int:
     """Run as ``python -m collision_node.bench.node_load``."""
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == [RESPONDER]:
+        return responder()
     parser = argparse.ArgumentParser(prog='python -m collision_node.bench node-load',
                                      description=__doc__.split('\n')[0])
     add_arguments(parser)
