@@ -266,8 +266,11 @@ def main(args: Optional[list[str]] = None) -> int:
         try:
             node = CollisionNode()
         finally:
+            # The participant has read both (rmw keeps its flag, Fast DDS the profiles).
             if profiles is not None:
                 os.unlink(profiles.name)
+                for name in ('RMW_FASTRTPS_USE_QOS_FROM_XML', 'FASTRTPS_DEFAULT_PROFILES_FILE'):
+                    os.environ.pop(name, None)
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
