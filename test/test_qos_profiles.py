@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import os
 import xml.etree.ElementTree as ElementTree
 
-from collision_node.ros.qos import FASTDDS_PROFILES_XML, own_fastdds_profiles
+from collision_node.ros.qos import (FASTDDS_PROFILES_XML, fastdds_profiles, MIDDLEWARE_SETTINGS,
+                                    own_fastdds_profiles)
 
 NS = {'dds': 'http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles'}
 
@@ -43,3 +45,19 @@ def test_a_users_own_middleware_configuration_is_left_alone():
                  'FASTDDS_DEFAULT_PROFILES_FILE'):
         assert not own_fastdds_profiles({name: '/somewhere/profiles.xml'})
     assert own_fastdds_profiles({'FASTRTPS_DEFAULT_PROFILES_FILE': ''})
+
+
+def test_the_profile_is_offered_only_while_the_node_is_created(monkeypatch):
+    for name in ('RMW_IMPLEMENTATION', *MIDDLEWARE_SETTINGS):
+        monkeypatch.delenv(name, raising=False)
+    with fastdds_profiles() as used:
+        assert used and os.environ['RMW_FASTRTPS_USE_QOS_FROM_XML'] == '1'
+        path = os.environ['FASTRTPS_DEFAULT_PROFILES_FILE']
+        with open(path, encoding='utf-8') as profile:
+            assert profile.read() == FASTDDS_PROFILES_XML
+    assert not os.path.exists(path)
+    assert not any(name in os.environ for name in MIDDLEWARE_SETTINGS)
+    monkeypatch.setenv('FASTRTPS_DEFAULT_PROFILES_FILE', '/users/own.xml')
+    with fastdds_profiles() as used:
+        assert not used and 'RMW_FASTRTPS_USE_QOS_FROM_XML' not in os.environ
+    assert os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] == '/users/own.xml'

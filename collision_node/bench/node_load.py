@@ -62,7 +62,7 @@ from msg_adapters import seconds_from_stamp
 from msg_adapters.cdr import CdrWriter
 from msg_adapters.strings import string_bytes
 
-from ..ros.qos import COMMAND_QOS, STATE_QOS, STATUS_QOS
+from ..ros.qos import COMMAND_QOS, fastdds_profiles, STATE_QOS, STATUS_QOS
 
 NODE_NAME = 'collision_node'
 SPAWN_RADIUS = 0.005          # m, the flood's and the latency probes' particles
@@ -593,12 +593,14 @@ def responder() -> int:
     """Stand in for the node: take every spawn raw and answer it with a fixed refusal.
 
     It takes requests as the node does (raw, draining the queue in one
-    callback) and publishes a pre-serialised answer, but reads nothing: the
+    callback, the node's Fast DDS profile) and publishes a pre-serialised
+    answer, but reads nothing: the
     rate it reaches under ``--floor`` is what the client and the middleware
     allow, the ceiling of the node's own rate on the same machine.
     """
     rclpy.init()
-    node = rclpy.create_node(NODE_NAME)
+    with fastdds_profiles():             # the node's middleware settings
+        node = rclpy.create_node(NODE_NAME)
     events = node.create_publisher(String, 'events', COMMAND_QOS)
     status = node.create_publisher(String, 'status', STATUS_QOS)
     seq = [0]

@@ -9,8 +9,6 @@ tabled in the README (section "The ROS 2 node").
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import time
 from typing import Any, Optional
 
@@ -40,8 +38,7 @@ from .commands import CommandInterface
 from .pacing import Lag, Pacer, RateMeter, STEP_BUDGET
 from .parameters import (as_double, DEFAULT_SCENE, integers_as_doubles, invalid_parameter,
                          PARAMETERS)
-from .qos import (FASTDDS_PROFILES_XML, own_fastdds_profiles, STATE_QOS, STATUS_QOS,
-                  VELOCITY_QOS)
+from .qos import fastdds_profiles, STATE_QOS, STATUS_QOS, VELOCITY_QOS
 from .reports import Reports
 from .status import status_report
 
@@ -252,25 +249,12 @@ def main(args: Optional[list[str]] = None) -> int:
     code = check_command_line(args)
     if code is not None:
         return code
-    profiles = None
-    if own_fastdds_profiles(os.environ):
-        # Read when the node's DDS participant is created (qos.py says why).
-        with tempfile.NamedTemporaryFile('w', prefix='collision_node_fastdds_', suffix='.xml',
-                                         delete=False) as profiles:
-            profiles.write(FASTDDS_PROFILES_XML)
-        os.environ.update(RMW_FASTRTPS_USE_QOS_FROM_XML='1',
-                          FASTRTPS_DEFAULT_PROFILES_FILE=profiles.name)
     rclpy.init(args=args)
     node = None
     try:
-        try:
+        # Readers that free each request once taken (qos.py says why).
+        with fastdds_profiles():
             node = CollisionNode()
-        finally:
-            # The participant has read both (rmw keeps its flag, Fast DDS the profiles).
-            if profiles is not None:
-                os.unlink(profiles.name)
-                for name in ('RMW_FASTRTPS_USE_QOS_FROM_XML', 'FASTRTPS_DEFAULT_PROFILES_FILE'):
-                    os.environ.pop(name, None)
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-from typing import Mapping
+import os
+import tempfile
+from contextlib import contextmanager
+from typing import Iterator, Mapping
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -79,3 +82,28 @@ def own_fastdds_profiles(environ: Mapping[str, str]) -> bool:
     """
     return (environ.get('RMW_IMPLEMENTATION', '') in ('', 'rmw_fastrtps_cpp')
             and not any(environ.get(name) for name in MIDDLEWARE_SETTINGS))
+
+
+@contextmanager
+def fastdds_profiles() -> Iterator[bool]:
+    """Within this block, a new DDS participant of this process loads FASTDDS_PROFILES_XML.
+
+    Create the node inside it: the participant reads the profile when it
+    is created (rmw keeps its flag, Fast DDS the profiles); the file and
+    the variables are gone afterwards. Yields whether the profile is used
+    (see :func:`own_fastdds_profiles`).
+    """
+    if not own_fastdds_profiles(os.environ):
+        yield False
+        return
+    with tempfile.NamedTemporaryFile('w', prefix='collision_node_fastdds_', suffix='.xml',
+                                     delete=False) as profiles:
+        profiles.write(FASTDDS_PROFILES_XML)
+    os.environ.update(RMW_FASTRTPS_USE_QOS_FROM_XML='1',
+                      FASTRTPS_DEFAULT_PROFILES_FILE=profiles.name)
+    try:
+        yield True
+    finally:
+        os.unlink(profiles.name)
+        for name in ('RMW_FASTRTPS_USE_QOS_FROM_XML', 'FASTRTPS_DEFAULT_PROFILES_FILE'):
+            os.environ.pop(name, None)
