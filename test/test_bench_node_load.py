@@ -68,3 +68,12 @@ def test_every_garbage_kind_makes_a_message():
             assert '\ufffd' in deserialize_message(message, String).data
         else:
             assert isinstance(message, str)
+
+
+def test_without_and_floor_are_checked_before_anything_starts(capsys):
+    everything = ['--parts', 'b', '--without', ' ']     # every kind's name has a space
+    assert all(' ' in name for name, _ in node_load.garbage_kinds())
+    assert node_load.main(everything) == 2
+    assert '--without leaves no garbage kind' in capsys.readouterr().err
+    assert node_load.main(['--parts', 'ab', '--floor']) == 2
+    assert '--floor runs part b only' in capsys.readouterr().err

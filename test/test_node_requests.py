@@ -16,12 +16,15 @@ import pytest
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
 
+from collision_node.physics.guard import MAX_TEXT_BYTES
 from msg_adapters import state_from_point_cloud
+from msg_adapters.strings import string_bytes
 from node_harness import executable, NodeUnderTest, ros_env, unique_domain_id
 
 PARTICLES = 16
@@ -298,3 +301,38 @@ def test_unknown_arguments_exit_2_with_one_line():
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and 'unrecognized arguments: --speed 3' in lines[0]
+
+
+def send_bytes(node, data: bytes) -> dict:
+    """Publish serialised bytes on ``spawn`` as they are and return the answer."""
+    pub = node.publisher(String, 'spawn')
+    start = len(node.answers)
+    pub.publish(data)
+    node.probe.wait_for(lambda: len(node.answers) > start)
+    return json.loads(node.answers[start].data)
+
+
+def test_requests_are_read_from_their_bytes_as_rclpy_reads_them(fresh):
+    # Over the limit by its length field alone: refused before any text is made.
+    big = string_bytes('{"position": [0, 0.4], "radius": 0.02, "mass": 1, "c": "'
+                       + 'x' * MAX_TEXT_BYTES + '"}')
+    over = send_bytes(fresh, big)
+    assert not over['accepted'] and over['request_id'] is None
+    assert over['reason'] == (f'spawn: text of {len(big) - 9} bytes (or more) is over the '
+                              f'limit of {MAX_TEXT_BYTES} bytes (1 MiB)')
+    # A length that runs past the message: not a String, one line saying so.
+    broken = send_bytes(fresh, b'\x00\x01\x00\x00' + (100).to_bytes(4, 'little') + b'{}\x00')
+    # (The middleware pads the 11 bytes to a multiple of 4.)
+    assert not broken['accepted'] and broken['reason'] == (
+        'spawn: not a std_msgs/String: string length 100 runs past the end of a 12-byte '
+        'message')
+    # (An earlier test resumed the world, so only the particle set is compared.)
+    assert world(fresh)['ids'].tolist() == fresh.initial['ids'].tolist()
+    # Invalid UTF-8 becomes U+FFFD and the text ends at a NUL, as with rclpy.
+    text = b'{"position": [0, 0.4], "radius": 0.02, "mass": 1, "request_id": "a\xffb"}'
+    odd = b'\x00\x01\x00\x00' + (len(text) + 6).to_bytes(4, 'little') + text + b'\x00junk\x00'
+    accepted = send_bytes(fresh, odd)
+    assert accepted['accepted'] and accepted['request_id'] == 'a\ufffdb'
+    assert accepted['request_id'] == json.loads(deserialize_message(odd, String).data)[
+        'request_id']
+    assert len(world(fresh)['ids']) == PARTICLES + 1

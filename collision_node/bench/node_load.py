@@ -1,6 +1,7 @@
 """Load benchmark of the node: spawn floods, garbage input, real-time factor, latency.
 
     python -m collision_node.bench node-load [--spawns 10000] [--garbage 10000]
+        [--without TEXT] [--floor]
         [--particles 10000] [--latency-samples 50] [--rtf-particles 1000]
         [--rtf-seconds 5] [--stall-particles 20000] [--timeout 60]
 
@@ -16,8 +17,9 @@ client. Four parts, printed as one Markdown table:
 (b) ``--garbage`` malformed requests cycling through every kind below
     (YAML alias bombs, nesting 5000 deep, 1 MiB strings, random text,
     invalid UTF-8 sent as raw CDR, absurd numbers, wrong types): answers,
-    rejections per second, the node's resident memory (VmRSS before and
-    after, VmHWM peak) and whether it survived.
+    rejections per second, the node's CPU time meanwhile, its resident
+    memory (VmRSS before, after and 2 s later, VmHWM peak) and whether it
+    survived.
 (c) real-time factor measured from ``/clock`` against wall time at
     ``publish_rate`` 30 and 1000 on a gas of ``--rtf-particles``, before and
     after a stall (a spawn of ``--stall-particles`` that is rejected at its
@@ -51,15 +53,16 @@ from geometry_msgs.msg import PoseArray
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Empty, String
 
 from msg_adapters import seconds_from_stamp
 from msg_adapters.cdr import CdrWriter
+from msg_adapters.strings import string_bytes
 
-from ..ros.qos import COMMAND_QOS, STATE_QOS, STATUS_QOS
+from ..ros.qos import COMMAND_QOS, fastdds_profiles, STATE_QOS, STATUS_QOS
 
 NODE_NAME = 'collision_node'
 SPAWN_RADIUS = 0.005          # m, the flood's and the latency probes' particles
@@ -68,6 +71,7 @@ GAS_RADIUS = 0.01             # m
 GAS_FRACTION = 0.05           # volume fraction of the latency world's gas
 GAS_SPEED = 0.1               # m/s
 DT = 1.0 / 60.0               # s, every bench scene
+SETTLE_SECONDS = 2.0          # s after the garbage flood's last answer, memory read again
 # Answers are taken with KEEP_ALL: the bench must not lose what the node sent.
 ANSWER_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
@@ -177,15 +181,16 @@ def garbage_kinds() -> list[tuple[str, Callable[[int, random.Random], Any]]]:
 class NodeProcess:
     """The node in a process of its own on ``domain_id``."""
 
-    def __init__(self, scene: Path, domain_id: int, parameters: dict[str, str]) -> None:
-        """Start ``python -m collision_node.ros.node`` on the scene with the parameters."""
+    def __init__(self, scene: Path, domain_id: int, parameters: dict[str, str],
+                 command: tuple[str, ...] = ('-m', 'collision_node.ros.node')) -> None:
+        """Start ``python -m collision_node.ros.node`` (or ``command``) on the scene."""
         self.log = tempfile.TemporaryFile('w+')
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id),
                    ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
         args = ['--ros-args', '-p', f'scene:={scene}']
         for name, value in parameters.items():
             args += ['-p', f'{name}:={value}']
-        self.process = subprocess.Popen([sys.executable, '-m', 'collision_node.ros.node', *args],
+        self.process = subprocess.Popen([sys.executable, *command, *args],
                                         env=env, stdout=self.log, stderr=subprocess.STDOUT)
 
     def alive(self) -> bool:
@@ -202,6 +207,16 @@ class NodeProcess:
         except OSError:
             return None
         return None
+
+    def cpu_seconds(self) -> Optional[float]:
+        """Return the CPU time the process used so far, every thread (None once it is gone)."""
+        try:
+            with open(f'/proc/{self.process.pid}/stat', encoding='ascii') as stat:
+                fields = stat.read().rsplit(')', 1)[1].split()
+        except OSError:
+            return None
+        # utime and stime are fields 14 and 15 of stat(5); the split starts at field 3.
+        return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
     def tail(self, lines: int = 3) -> str:
         """Return the last lines the node wrote."""
@@ -303,11 +318,16 @@ class Client:
 
 
 def start_node(scene_text: str, workdir: Path, name: str, domain_id: int,
-               timeout: float) -> tuple[NodeProcess, Client]:
-    """Write the scene, start the node and a client; wait for its status and subscriptions."""
+               timeout: float, floor: bool = False) -> tuple[NodeProcess, Client]:
+    """Write the scene, start the node and a client; wait for its status and subscriptions.
+
+    ``floor`` starts :func:`responder` in the node's place.
+    """
     path = workdir / f'{name}.yaml'
     path.write_text(scene_text)
-    node = NodeProcess(path, domain_id, {})
+    node = NodeProcess(path, domain_id, {}, ('-m', 'collision_node.bench.node_load',
+                                             RESPONDER) if floor else
+                       ('-m', 'collision_node.ros.node'))
     client = Client(domain_id)
     ready = client.wait(lambda: client.statuses and client.spawn.get_subscription_count() > 0
                         and client.reset.get_subscription_count() > 0, timeout, node)
@@ -394,13 +414,17 @@ def spawn_flood(client: Client, node: NodeProcess, count: int, timeout: float) -
 
 
 def garbage_flood(client: Client, node: NodeProcess, count: int, timeout: float,
-                  seed: int = 5) -> list[Row]:
-    """Part (b): ``count`` malformed requests of every kind; answers, rate and memory."""
+                  seed: int = 5, without: tuple[str, ...] = ()) -> list[Row]:
+    """Part (b): ``count`` malformed requests of every kind; answers, rate and memory.
+
+    ``without`` leaves out the kinds whose name contains one of its texts.
+    """
     rng = random.Random(seed)
-    kinds = garbage_kinds()
+    kinds = [(name, make) for name, make in garbage_kinds()
+             if not any(text in name for text in without)]
     raw = client.node.create_publisher(String, 'spawn', COMMAND_QOS)
     client.wait(lambda: raw.get_subscription_count() > 0, timeout, node)
-    rss_before = node.memory_kib()
+    rss_before, cpu_before = node.memory_kib(), node.cpu_seconds()
     start = len(client.events)
     sent = {name: 0 for name, _ in kinds}
     t0 = time.monotonic()
@@ -425,8 +449,11 @@ def garbage_flood(client: Client, node: NodeProcess, count: int, timeout: float,
     answers = answers_since(client, start)
     t_last = answers[-1][0] if answers else time.monotonic()
     rejected = sum(1 for _, e in answers if not e.get('accepted', False))
-    rss_after, hwm = node.memory_kib(), node.memory_kib('VmHWM')
+    rss_after, hwm, cpu_after = node.memory_kib(), node.memory_kib('VmHWM'), node.cpu_seconds()
     client.node.destroy_publisher(raw)
+    # The node's memory a while later: what it keeps, not what it is still freeing.
+    client.spin(SETTLE_SECONDS)
+    rss_settled = node.memory_kib()
 
     def mib(kib: Optional[int]) -> str:
         return '-' if kib is None else f'{kib / 1024:.0f} MiB'
@@ -435,8 +462,12 @@ def garbage_flood(client: Client, node: NodeProcess, count: int, timeout: float,
                                    f'{total // len(kinds)}+ each) in {t_published - t0:.2f} s'),
         ('b', 'answers (rejections) / published', f'{len(answers)} ({rejected}) / {total}'),
         ('b', 'rejections per second', f'{rejected / max(t_last - t0, 1e-9):.0f}'),
-        ('b', 'node VmRSS before / after, VmHWM', f'{mib(rss_before)} / {mib(rss_after)}, '
-                                                  f'{mib(hwm)}'),
+        ('b', f'node VmRSS before / after / {SETTLE_SECONDS:g} s later, VmHWM',
+         f'{mib(rss_before)} / {mib(rss_after)} / {mib(rss_settled)}, {mib(hwm)}'),
+        ('b', 'node CPU time (all threads) from the first request to the last answer',
+         '-' if cpu_before is None or cpu_after is None else
+         f'{cpu_after - cpu_before:.2f} s ({1e3 * (cpu_after - cpu_before) / total:.2f} ms '
+         'per request)'),
         ('b', 'node', 'alive' if node.alive() else
          f'DIED (exit {node.process.returncode}) during "{died_at or "the answers"}": '
          f'{node.tail()}'),
@@ -553,6 +584,52 @@ def spawn_latency(client: Client, node: NodeProcess, samples: int, particles: in
     return rows
 
 
+# -- the floor: a stand-in that only takes and answers ------------------------
+
+RESPONDER = '--responder'
+
+
+def responder() -> int:
+    """Stand in for the node: take every spawn raw and answer it with a fixed refusal.
+
+    It takes requests as the node does (raw, draining the queue in one
+    callback, the node's Fast DDS profile) and publishes a pre-serialised
+    answer, but reads nothing: the
+    rate it reaches under ``--floor`` is what the client and the middleware
+    allow, the ceiling of the node's own rate on the same machine.
+    """
+    rclpy.init()
+    with fastdds_profiles():             # the node's middleware settings
+        node = rclpy.create_node(NODE_NAME)
+    events = node.create_publisher(String, 'events', COMMAND_QOS)
+    status = node.create_publisher(String, 'status', STATUS_QOS)
+    seq = [0]
+
+    def answer(request: str) -> None:
+        seq[0] += 1
+        events.publish(string_bytes(f'{{"seq": {seq[0]}, "request": "{request}", '
+                                    '"request_id": null, "accepted": false, '
+                                    '"reason": "floor", "particles": 0}'))
+
+    def on_spawn(_: bytes) -> None:
+        answer('spawn')
+        with spawn.handle:
+            while spawn.handle.take_message(String, True) is not None:
+                answer('spawn')
+
+    spawn = node.create_subscription(String, 'spawn', on_spawn, COMMAND_QOS, raw=True)
+    node.create_subscription(Empty, 'reset', lambda _: answer('reset'), COMMAND_QOS)
+    node.create_timer(0.5, lambda: status.publish(String(data='{}')))
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
 # -- command ----------------------------------------------------------------
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -561,6 +638,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='(a) valid single-particle spawns (default 10000)')
     parser.add_argument('--garbage', type=int, default=10_000, metavar='N',
                         help='(b) malformed requests (default 10000)')
+    parser.add_argument('--without', action='append', default=[], metavar='TEXT',
+                        help='(b) leave out the garbage kinds whose name contains TEXT, '
+                             'e.g. "1 MiB" (repeatable)')
+    parser.add_argument('--floor', action='store_true',
+                        help='(b only) flood a stand-in that answers without reading, to '
+                             'measure what the client and the middleware allow')
     parser.add_argument('--rtf-particles', type=int, default=1_000, metavar='N',
                         help='(c) gas particles while the real-time factor is measured '
                              '(default 1000)')
@@ -589,6 +672,14 @@ def run(args: argparse.Namespace) -> int:
         if getattr(args, name) < 1:
             print(f'node-load: --{name.replace("_", "-")} must be >= 1', file=sys.stderr)
             return 2
+    kinds = [name for name, _ in garbage_kinds()
+             if not any(text in name for text in args.without)]
+    if not kinds:
+        print('node-load: --without leaves no garbage kind', file=sys.stderr)
+        return 2
+    if args.floor and parts != {'b'}:
+        print('node-load: --floor runs part b only (--parts b)', file=sys.stderr)
+        return 2
     if not parts <= set('abcd') or not parts:
         print(f'node-load: --parts takes letters of abcd, got {args.parts!r}', file=sys.stderr)
         return 2
@@ -600,7 +691,8 @@ def run(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(prefix='node_load_') as workdir:
         if parts & set('abc'):
             text = box_scene_text(max(args.spawns + 1, args.rtf_particles))
-            node, client = start_node(text, Path(workdir), 'box', domain_id, args.timeout)
+            node, client = start_node(text, Path(workdir), 'box', domain_id, args.timeout,
+                                      args.floor)
             try:
                 if 'a' in parts:
                     rows += spawn_flood(client, node, args.spawns, args.timeout)
@@ -608,7 +700,8 @@ def run(args: argparse.Namespace) -> int:
                     start = len(client.events)
                     client.reset.publish(Empty())
                     client.wait(lambda: len(client.events) > start, args.timeout, node)
-                    rows += garbage_flood(client, node, args.garbage, args.timeout)
+                    rows += garbage_flood(client, node, args.garbage, args.timeout,
+                                          without=tuple(args.without))
                 if 'c' in parts and node.alive():
                     rows += rtf_around_stall(client, node, args.rtf_particles,
                                              args.rtf_seconds, args.stall_particles,
@@ -636,6 +729,9 @@ def run(args: argparse.Namespace) -> int:
 
 def main(argv: Optional[list[str]] = None) -> int:
     """Run as ``python -m collision_node.bench.node_load``."""
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == [RESPONDER]:
+        return responder()
     parser = argparse.ArgumentParser(prog='python -m collision_node.bench node-load',
                                      description=__doc__.split('\n')[0])
     add_arguments(parser)

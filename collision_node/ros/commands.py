@@ -19,16 +19,21 @@ module only routes messages and formats answers.
 
 from __future__ import annotations
 
+import ctypes
 import json
 import time
 from typing import Any, Callable
 
+from rclpy.clock import Clock, ClockType
 from rclpy.parameter import Parameter
 from std_msgs.msg import Empty, String
 from std_srvs.srv import SetBool, Trigger
 
+from msg_adapters.strings import string_bytes, string_size, string_text, StringMessageError
+
 from ..physics.commands import (delete_request, id_ranges, impulse_request, parse_request,
                                 request_id_of, spawn_request, step_count, teleport_request)
+from ..physics.guard import MAX_TEXT_BYTES
 from ..physics.validation import SceneError
 from ..physics.world import NonFiniteStateError
 from .qos import COMMAND_QOS, EVENTS_QOS
@@ -37,6 +42,11 @@ MAX_REASON = 400             # characters of a refusal reason in an answer
 # Queued requests one callback may take after its own (see _subscribe).
 DRAIN_MESSAGES = 256
 DRAIN_SECONDS = 0.01
+LOG_PERIOD = 1.0             # s between two log lines of one kind (spawns, deletes)
+# Request bytes taken after which the heap is trimmed once the queue is empty (see _trim).
+TRIM_BYTES = 16 << 20
+TRIM_PERIOD = 1.0            # s between checks for a trim the drain did not make
+_MALLOC_TRIM = getattr(ctypes.CDLL(None), 'malloc_trim', None)     # glibc only
 # Refusals logged a second at most (each is answered on events anyway).
 LOGGED_PER_SECOND = 20
 
@@ -76,6 +86,8 @@ class CommandInterface:
         self.node = node
         self.seq = 0
         self.log_budget = LogBudget(node.get_logger())
+        self._logged: dict[str, float] = {}     # monotonic time of each kind's last log line
+        self._taken = 0                         # request bytes taken since the last trim
         self.pub_events = node.create_publisher(String, 'events', EVENTS_QOS)
         handlers: dict[str, Callable[[Any], dict]] = {
             'spawn': self._spawn, 'delete': self._delete, 'teleport': self._teleport,
@@ -85,37 +97,76 @@ class CommandInterface:
         node.create_subscription(Empty, 'reset', self._on_reset_topic, COMMAND_QOS)
         node.create_service(Trigger, 'reset', self._on_reset_service)
         node.create_service(SetBool, 'pause', self._on_pause_service)
+        # A burst can end without its last drain finding the queue empty.
+        node.create_timer(TRIM_PERIOD, lambda: self._trim(1 << 20), clock=Clock(
+            clock_type=ClockType.STEADY_TIME))
 
     def _subscribe(self, name: str, handler: Callable[[Any], dict]) -> None:
-        """Subscribe to one command topic; each callback also drains what is queued."""
+        """Subscribe to one command topic raw; each callback also drains what is queued.
+
+        The messages arrive as their CDR bytes: a request's size is read from
+        the length field and a too-long one refused before any text is made
+        of it (rclpy would first copy it into a C string and a Python str).
+        """
         subscription = None
 
-        def on_message(msg: String) -> None:
-            self.handle(name, msg.data, handler)
+        def on_message(data: bytes) -> None:
+            self.handle_bytes(name, data, handler)
             # The executor hands over one message per wait, which costs more than
             # most requests do; take what is already queued here, within a bound so
             # the tick (stepping and publishing) still runs on time.
             deadline = time.monotonic() + DRAIN_SECONDS
+            handle = subscription.handle
             for _ in range(DRAIN_MESSAGES):
                 if time.monotonic() > deadline:
                     break
-                with subscription.handle:
-                    taken = subscription.handle.take_message(subscription.msg_type,
-                                                             subscription.raw)
+                with handle:
+                    taken = handle.take_message(String, True)
                 if taken is None:
+                    self._trim()
                     break
-                self.handle(name, taken[0].data, handler)
+                self.handle_bytes(name, taken[0], handler)
 
-        subscription = self.node.create_subscription(String, name, on_message, COMMAND_QOS)
+        subscription = self.node.create_subscription(String, name, on_message, COMMAND_QOS,
+                                                     raw=True)
 
     # -- answers ------------------------------------------------------------
 
     def answer(self, request: str, request_id: Any, accepted: bool, **fields: Any) -> None:
-        """Publish one answer on ``events``."""
+        """Publish one answer on ``events`` (serialised here, no message object)."""
         self.seq += 1
         event = {'seq': self.seq, 'request': request, 'request_id': request_id,
                  'accepted': accepted, **fields, 'particles': len(self.node.world.state)}
-        self.pub_events.publish(String(data=json.dumps(event)))
+        self.pub_events.publish(string_bytes(json.dumps(event)))
+
+    def _trim(self, at_least: int = TRIM_BYTES) -> None:
+        """Give the heap's free pages back to the system after a burst of large requests.
+
+        A flood of 1 MiB requests leaves glibc holding what they used (its
+        mmap threshold grows with the first freed large block, so the next
+        ones come from the heap and stay there); trimming once the queue is
+        empty costs a few milliseconds per TRIM_BYTES of requests.
+        """
+        if self._taken >= at_least and _MALLOC_TRIM is not None:
+            _MALLOC_TRIM(0)
+            self._taken = 0
+
+    def handle_bytes(self, request: str, data: bytes, handler: Callable[[Any], dict]) -> None:
+        """Check a serialised String's size, read its text and handle it; refuse if unreadable."""
+        self._taken += len(data)
+        try:
+            size = string_size(data)
+            if size > MAX_TEXT_BYTES:
+                # The guard's own words (it would say the same after decoding).
+                raise SceneError(f'{request}: text of {size} bytes (or more) is over the '
+                                 f'limit of {MAX_TEXT_BYTES} bytes (1 MiB)')
+            text = string_text(data)
+        except StringMessageError as error:
+            self.refuse(request, None, f'{request}: not a std_msgs/String: {error}')
+        except SceneError as error:
+            self.refuse(request, None, str(error))
+        else:
+            self.handle(request, text, handler)
 
     def handle(self, request: str, text: str, handler: Callable[[Any], dict]) -> None:
         """Parse a command's text, run it, and answer once (accepted or with the reason)."""
@@ -131,6 +182,10 @@ class CommandInterface:
         else:
             self.answer(request, request_id, True, **fields)
             return
+        self.refuse(request, request_id, reason)
+
+    def refuse(self, request: str, request_id: Any, reason: str) -> None:
+        """Answer a refusal with its reason made one bounded line."""
         reason = ' '.join(reason.split())
         if len(reason) > MAX_REASON:
             reason = reason[:MAX_REASON] + '...'
@@ -140,20 +195,34 @@ class CommandInterface:
             self.node.get_logger().warning(f'rejected {reason}')
         self.answer(request, request_id, False, reason=reason)
 
+    def _may_log(self, kind: str) -> bool:
+        """Tell whether a ``kind`` line may be logged now (at most one per LOG_PERIOD).
+
+        The throttle is kept here: rclpy's ``throttle_duration_sec`` finds the
+        caller's source file on every call, throttled or not (about 0.4 ms,
+        more than most refusals cost).
+        """
+        now = time.monotonic()
+        if now - self._logged.get(kind, float('-inf')) < LOG_PERIOD:
+            return False
+        self._logged[kind] = now
+        return True
+
     # -- commands -------------------------------------------------------------
 
     def _spawn(self, data: Any) -> dict:
         """Spawn particles; answer their ids."""
         ids = spawn_request(self.node.world, data)
-        self.node.get_logger().info(f'spawned {ids.size} particles (ids {ids[0]}..{ids[-1]})'
-                                    if ids.size else 'spawn request held no particles',
-                                    throttle_duration_sec=1.0)
+        if self._may_log('spawned'):
+            self.node.get_logger().info(f'spawned {ids.size} particles (ids {ids[0]}..{ids[-1]})'
+                                        if ids.size else 'spawn request held no particles')
         return {'ids': id_ranges(ids)}
 
     def _delete(self, data: Any) -> dict:
         """Delete particles; answer the deleted ids."""
         ids = delete_request(self.node.world, data)
-        self.node.get_logger().info(f'deleted {ids.size} particles')
+        if self._may_log('deleted'):
+            self.node.get_logger().info(f'deleted {ids.size} particles')
         return {'ids': id_ranges(ids)}
 
     def _teleport(self, data: Any) -> dict:

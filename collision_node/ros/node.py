@@ -38,7 +38,7 @@ from .commands import CommandInterface
 from .pacing import Lag, Pacer, RateMeter, STEP_BUDGET
 from .parameters import (as_double, DEFAULT_SCENE, integers_as_doubles, invalid_parameter,
                          PARAMETERS)
-from .qos import STATE_QOS, STATUS_QOS, VELOCITY_QOS
+from .qos import fastdds_profiles, STATE_QOS, STATUS_QOS, VELOCITY_QOS
 from .reports import Reports
 from .status import status_report
 
@@ -252,7 +252,9 @@ def main(args: Optional[list[str]] = None) -> int:
     rclpy.init(args=args)
     node = None
     try:
-        node = CollisionNode()
+        # Readers that free each request once taken (qos.py says why).
+        with fastdds_profiles():
+            node = CollisionNode()
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import tempfile
+from contextlib import contextmanager
+from typing import Iterator, Mapping
+
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 
@@ -29,3 +34,76 @@ STATUS_QOS = reliable_qos(1, DurabilityPolicy.TRANSIENT_LOCAL)
 COLLISIONS_QOS = reliable_qos(100)
 # /diagnostics: reliable keep last 10, as monitoring tools subscribe.
 DIAGNOSTICS_QOS = reliable_qos(10)
+
+
+# -- Fast DDS settings of the node's own process ------------------------------
+#
+# rmw_fastrtps gives every reader the history memory policy
+# PREALLOCATED_WITH_REALLOC: a sample's buffer, once grown for a 1 MiB
+# request, goes back to a pool that never shrinks, so a flood of large
+# requests queued in a KEEP_ALL reader left the node 1.5 GiB larger for
+# good. Every reader of the node takes requests (command topics and
+# services), so the node's readers are DYNAMIC (a buffer per sample, freed
+# when taken). With RMW_FASTRTPS_USE_QOS_FROM_XML=1 rmw_fastrtps takes the
+# memory policy, publication mode and data sharing from the XML instead of
+# its own defaults, so the profile restates those defaults for everything
+# else (writers: PREALLOCATED_WITH_REALLOC, SYNCHRONOUS, data sharing off;
+# readers: data sharing off). History, depth, reliability and durability
+# still come from the profiles above: rmw applies the ROS QoS on top.
+FASTDDS_PROFILES_XML = '''<?xml version="1.0" encoding="UTF-8"?>
+<dds xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <profiles>
+    <data_writer profile_name="collision_node writers" is_default_profile="true">
+      <qos>
+        <publishMode><kind>SYNCHRONOUS</kind></publishMode>
+        <data_sharing><kind>OFF</kind></data_sharing>
+      </qos>
+      <historyMemoryPolicy>PREALLOCATED_WITH_REALLOC</historyMemoryPolicy>
+    </data_writer>
+    <data_reader profile_name="collision_node readers" is_default_profile="true">
+      <qos>
+        <data_sharing><kind>OFF</kind></data_sharing>
+      </qos>
+      <historyMemoryPolicy>DYNAMIC</historyMemoryPolicy>
+    </data_reader>
+  </profiles>
+</dds>
+'''
+# Settings by which a user configures the middleware; the node then leaves it alone.
+MIDDLEWARE_SETTINGS = ('RMW_FASTRTPS_USE_QOS_FROM_XML', 'FASTRTPS_DEFAULT_PROFILES_FILE',
+                       'FASTDDS_DEFAULT_PROFILES_FILE')
+
+
+def own_fastdds_profiles(environ: Mapping[str, str]) -> bool:
+    """Tell whether the node should load FASTDDS_PROFILES_XML in an environment.
+
+    Only under rmw_fastrtps_cpp (the default) and only when the user has not
+    configured Fast DDS through its own XML.
+    """
+    return (environ.get('RMW_IMPLEMENTATION', '') in ('', 'rmw_fastrtps_cpp')
+            and not any(environ.get(name) for name in MIDDLEWARE_SETTINGS))
+
+
+@contextmanager
+def fastdds_profiles() -> Iterator[bool]:
+    """Within this block, a new DDS participant of this process loads FASTDDS_PROFILES_XML.
+
+    Create the node inside it: the participant reads the profile when it
+    is created (rmw keeps its flag, Fast DDS the profiles); the file and
+    the variables are gone afterwards. Yields whether the profile is used
+    (see :func:`own_fastdds_profiles`).
+    """
+    if not own_fastdds_profiles(os.environ):
+        yield False
+        return
+    with tempfile.NamedTemporaryFile('w', prefix='collision_node_fastdds_', suffix='.xml',
+                                     delete=False) as profiles:
+        profiles.write(FASTDDS_PROFILES_XML)
+    os.environ.update(RMW_FASTRTPS_USE_QOS_FROM_XML='1',
+                      FASTRTPS_DEFAULT_PROFILES_FILE=profiles.name)
+    try:
+        yield True
+    finally:
+        os.unlink(profiles.name)
+        for name in ('RMW_FASTRTPS_USE_QOS_FROM_XML', 'FASTRTPS_DEFAULT_PROFILES_FILE'):
+            os.environ.pop(name, None)
