@@ -137,3 +137,13 @@ def test_accuracy_scenes_include_the_gravity_scenes():
                  if name == 'pile']
     # No exact reference (event mode refuses friction), no dt sweep.
     assert pile_runs == [(p, 1 / 120) for p in ('fast', 'balanced', 'accurate')]
+
+
+def test_exact_bench_prints_a_row_per_size(capsys):
+    assert bench.main(['exact', '--counts', '200', '--steps', '4']) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith('| 200 |')]
+    assert len(rows) == 1
+    cells = [cell.strip() for cell in rows[0].strip('|').split('|')]
+    balanced, exact, ratio = float(cells[2]), float(cells[3]), float(cells[4])
+    assert balanced > 0 and exact > 0
+    assert ratio == pytest.approx(exact / balanced, abs=0.06)

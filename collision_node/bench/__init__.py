@@ -24,6 +24,7 @@ SUBCOMMANDS: dict[str, str] = {
     'commands': 'collision_node.bench.commands',
     'pile': 'collision_node.bench.pile',
     'mixed': 'collision_node.bench.mixed',
+    'exact': 'collision_node.bench.exact',
     'node-start': 'collision_node.bench.node_start',
 }
 

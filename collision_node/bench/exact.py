@@ -1,0 +1,79 @@
+"""Benchmark: the `exact` preset against `balanced` on the 3-D elastic gas.
+
+    python -m collision_node.bench exact [--counts 1000 10000] [--steps 120 12]
+
+The gas of ``bench throughput`` at a volume fraction of 10 % (walls,
+e = 1, dt = 1/240 s) runs under `balanced` and `exact` from the same start;
+the table gives CPU ns per particle-step, the ratio exact / balanced and
+the impacts resolved per CPU second (particle and wall impacts, the events
+the exact preset jumps between). A command, not a test: numbers depend on
+the machine and its load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from typing import Optional, Sequence
+
+from ..physics import contact_kernels
+from ..physics.scene import parse_scene
+from ..physics.world import World
+from .throughput import gas_scene
+
+FRACTION = 0.1          # volume fraction of the gas
+WARM_STEPS = 2          # untimed steps first (first contacts, lists built)
+
+
+def measure(count: int, steps: int, preset: str) -> tuple[float, float, int]:
+    """Return (CPU ns per particle-step, impacts per CPU second, impacts) of one run."""
+    scene = dict(gas_scene(count, fraction=FRACTION), accuracy=preset)
+    world = World(parse_scene(scene, f'bench:gas_{count}'))
+    world.step(WARM_STEPS)
+    before = world.stats.collisions + world.stats.wall_collisions
+    start = time.process_time()
+    world.step(steps)
+    cpu = time.process_time() - start
+    impacts = world.stats.collisions + world.stats.wall_collisions - before
+    return cpu / (steps * count) * 1e9, impacts / cpu, impacts
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add this benchmark's options (for ``python -m collision_node.bench exact``)."""
+    parser.add_argument('--counts', type=int, nargs='+', default=[1000, 10_000],
+                        help='gas sizes (default 1000 10000)')
+    parser.add_argument('--steps', type=int, nargs='+', default=[120, 12],
+                        help='timed steps per size, one value or one per size')
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the benchmark and print the table; return the exit code."""
+    steps = args.steps if len(args.steps) == len(args.counts) else args.steps[:1] * len(
+        args.counts)
+    contact_kernels.prepare()
+    load = os.getloadavg()
+    print(f'# 3-D elastic gas, volume fraction {FRACTION:g}; CPU time; load average '
+          f'{load[0]:.2f} {load[1]:.2f} {load[2]:.2f}, {os.cpu_count()} CPUs')
+    print('| N | steps | balanced ns/particle-step | exact ns/particle-step | exact / balanced '
+          '| exact impacts per CPU s | impacts |')
+    print('|---|---|---|---|---|---|---|')
+    for count, k in zip(args.counts, steps):
+        balanced, _, _ = measure(count, k, 'balanced')
+        exact, rate, impacts = measure(count, k, 'exact')
+        print(f'| {count} | {k} | {balanced:.0f} | {exact:.0f} | {exact / balanced:.1f} '
+              f'| {rate:.0f} | {impacts} |', flush=True)
+    return 0
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Parse options and run (``python -m collision_node.bench.exact``)."""
+    parser = argparse.ArgumentParser(prog='python -m collision_node.bench.exact',
+                                     description=__doc__.split('\n')[0])
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == '__main__':
+    sys.exit(main())
