@@ -87,8 +87,7 @@ def _swept_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
     closed form with drag (see ``swept_contacts``). With gravity, drag,
     friction or a threshold, contacts slower than the restitution threshold
     are resting contact: the walls stage, the sequential solve (threshold,
-    shock passes, friction) and separation take them at the step end, on
-    the candidate pairs of the swept stage's list.
+    shock passes, friction) and separation take them at the step end.
     """
     notes = []
     ordering = accuracy.ordering
@@ -112,7 +111,10 @@ def _swept_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
         # Wall contacts slower than the threshold, found past a plane at the
         # step end, rest on it (the walls stage's law at its time in the step).
         stages.append(WallStage(effects.walls, friction=effects.friction))
-    stages += [NarrowphaseStage(),
+    # A fresh candidate search at the step end (as in discrete detection):
+    # it also finds the overlaps of particles an impact sent beyond the
+    # swept stage's list, and gives the solve the discrete pipeline's order.
+    stages += [BroadphaseStage(), NarrowphaseStage(),
                SequentialImpulseStage(effects.particle_restitution, accuracy.iterations,
                                       friction=effects.friction, walls=effects.walls,
                                       gravity=effects.gravity),

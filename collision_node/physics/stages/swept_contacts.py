@@ -196,6 +196,11 @@ def wall_impact_times(position: np.ndarray, velocity: np.ndarray, radius: np.nda
     return times
 
 
+# An impact closing at this many restitution thresholds strikes its
+# particles, whose resting contacts become impacts (the sequential solve's
+# STRIKE_FACTOR, for the same reason: closing speeds of a few thresholds
+# build up inside a resting stack and must not be passed on as shocks).
+STRIKE_FACTOR = 10.0
 # Under gravity, a pair (or a particle and a wall) closer than this fraction
 # of its contact distance at the step start is in resting contact (see
 # SweptContactStage._in_contact).
@@ -380,6 +385,9 @@ class SweptContactStage(Stage):
         # solved after this stage (see the module docstring).
         min_speed = ctx.effects.threshold(dt)
         resting_pair = resting_wall = None
+        # Particles an impact struck in this step (see _in_contact).
+        struck = self._struck = np.zeros(n, dtype=bool)
+        self._strike_speed = STRIKE_FACTOR * min_speed
         if self.gravity is not None:
             resting_pair, resting_wall = self._in_contact(ctx, a, b)
         local_time = np.zeros(n)
@@ -394,14 +402,16 @@ class SweptContactStage(Stage):
                                                     a[redo], b[redo], self.gravity, dynamic,
                                                     min_speed, dt)
                 if resting_pair is not None:
-                    pair_time[redo[resting_pair[redo]]] = np.inf
+                    held = resting_pair[redo] & ~(struck[a[redo]] | struck[b[redo]])
+                    pair_time[redo[held]] = np.inf
             if self.walls is not None:
                 moved = np.flatnonzero(changed & dynamic)
                 wall_time[moved] = wall_impact_times(x[moved], v[moved], s.radius[moved],
                                                      local_time[moved], self.walls,
                                                      ctx.dimensions, self.gravity, min_speed)
                 if resting_wall is not None:
-                    wall_time[moved] = np.where(resting_wall[moved], np.inf, wall_time[moved])
+                    held = resting_wall[moved] & ~struck[moved, None]
+                    wall_time[moved] = np.where(held, np.inf, wall_time[moved])
                 first_wall[moved] = wall_time[moved].min(axis=1)
             changed[:] = False
             pending = np.flatnonzero(pair_time <= dt)
@@ -434,10 +444,14 @@ class SweptContactStage(Stage):
         """Return (pairs, particle-wall columns) touching at the step start.
 
         Under gravity these are resting contact (a pile, a stack, a ball on
-        the floor), whatever they close at: the step-end solve takes them
-        with its threshold and shock passes. Taken here, a resting column at
-        e = 1 kept the closing speeds its last solve left (a few thresholds)
-        as a wave that never settled (test_hard_cases, case 7).
+        the floor): the step-end solve takes them with its threshold and
+        shock passes. Taken here, a resting column at e = 1 kept the closing
+        speeds its last solve left (a few thresholds) as a wave that never
+        settled (test_hard_cases, case 7). Once an impact of at least
+        STRIKE_FACTOR thresholds strikes one of their particles, they are
+        impacts again and taken here in time order, so the shock runs
+        through a resting column with its e (the sequential impact model,
+        case 13), as in the solver.
         """
         s = ctx.state
         reach = s.radius[a] + s.radius[b]
@@ -518,6 +532,8 @@ class SweptContactStage(Stage):
         record_pairs(ctx.impacts, ctx.time + time[hit], x, s.radius, a[hit], b[hit],
                      normal[hit], result.magnitude[hit], tangential, result.approach[hit])
         ctx.stats.collisions += int(hit.sum())
+        strikes = hit & (np.asarray(e) > 0.0) & (result.approach >= self._strike_speed)
+        self._struck[a[strikes]] = self._struck[b[strikes]] = True
         changed[a] = True
         changed[b] = True
 
@@ -541,6 +557,7 @@ class SweptContactStage(Stage):
                 _, magnitude, approach, removed = apply_wall_impulses(
                     s.velocity, s.inv_mass, hit, axis, inward, e)
                 ctx.book('walls', removed, hit)
+                self._struck[hit[(np.asarray(e) > 0.0) & (approach >= self._strike_speed)]] = True
                 tangential = 0.0
                 if self.friction is not None:
                     normal = np.zeros((hit.size, 3))
