@@ -385,8 +385,10 @@ def test_pipeline_has_exactly_the_declared_stages(effects, stages):
 
 SWEPT = ['swept_contacts', 'narrowphase', 'separation']
 # With gravity, drag, friction or a threshold: impacts at their time of
-# impact, resting contact solved at the step end (no fallback note).
-SWEPT_RESTING = ['swept_contacts', 'narrowphase', 'contact_impulses', 'separation']
+# impact, resting contact solved at the step end after a fresh candidate
+# search (no fallback note).
+SWEPT_RESTING = ['swept_contacts', 'broadphase', 'narrowphase', 'contact_impulses',
+                 'separation']
 
 
 @pytest.mark.parametrize('effects, stages', [
@@ -395,7 +397,8 @@ SWEPT_RESTING = ['swept_contacts', 'narrowphase', 'contact_impulses', 'separatio
     ({'gravity': [0, -G, 0]}, SWEPT_RESTING),
     ({'friction': 0.5}, ['spin'] + SWEPT_RESTING),
     ({'gravity': [0, -G, 0], 'walls': {'min': [None, 0, None]}},
-     ['swept_contacts', 'walls', 'narrowphase', 'contact_impulses', 'separation']),
+     ['swept_contacts', 'walls', 'broadphase', 'narrowphase', 'contact_impulses',
+      'separation']),
 ])
 def test_ccd_preset_runs_swept_contacts_under_every_effect(effects, stages):
     world = World(parse_scene({'effects': effects, 'accuracy': 'balanced'}, 't'))
@@ -526,11 +529,11 @@ def test_elastic_pile_never_gains_total_energy():
 
 @pytest.mark.parametrize('name, stages', [
     ('oblique_pair', ['swept_contacts', 'narrowphase', 'separation']),
-    ('bouncing_balls', ['swept_contacts', 'walls', 'narrowphase', 'contact_impulses',
-                        'separation']),
-    ('pile', ['spin', 'swept_contacts', 'walls', 'narrowphase', 'contact_impulses',
-              'separation']),
-    ('spin_billiards', ['spin', 'swept_contacts', 'walls', 'narrowphase',
+    ('bouncing_balls', ['swept_contacts', 'walls', 'broadphase', 'narrowphase',
+                        'contact_impulses', 'separation']),
+    ('pile', ['spin', 'swept_contacts', 'walls', 'broadphase', 'narrowphase',
+              'contact_impulses', 'separation']),
+    ('spin_billiards', ['spin', 'swept_contacts', 'walls', 'broadphase', 'narrowphase',
                         'contact_impulses', 'separation']),
 ])
 def test_shipped_scenes_explain_exactly_their_stages(name, stages, capsys):
