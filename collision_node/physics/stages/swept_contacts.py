@@ -196,6 +196,11 @@ def wall_impact_times(position: np.ndarray, velocity: np.ndarray, radius: np.nda
     return times
 
 
+# An impact closing at this many restitution thresholds strikes its
+# particles, whose resting contacts become impacts (the sequential solve's
+# STRIKE_FACTOR, for the same reason: closing speeds of a few thresholds
+# build up inside a resting stack and must not be passed on as shocks).
+STRIKE_FACTOR = 10.0
 # Under gravity, a pair (or a particle and a wall) closer than this fraction
 # of its contact distance at the step start is in resting contact (see
 # SweptContactStage._in_contact).
@@ -380,8 +385,11 @@ class SweptContactStage(Stage):
         # solved after this stage (see the module docstring).
         min_speed = ctx.effects.threshold(dt)
         resting_pair = resting_wall = None
-        # Particles an impact struck in this step (see _in_contact).
-        struck = self._struck = np.zeros(n, dtype=bool)
+        # Particles an impact struck in this step, and those any impact
+        # changed (see _in_contact).
+        self._struck = np.zeros(n, dtype=bool)
+        touched = self._touched = np.zeros(n, dtype=bool)
+        self._strike_speed = STRIKE_FACTOR * min_speed
         if self.gravity is not None:
             resting_pair, resting_wall = self._in_contact(ctx, a, b)
         local_time = np.zeros(n)
@@ -396,7 +404,7 @@ class SweptContactStage(Stage):
                                                     a[redo], b[redo], self.gravity, dynamic,
                                                     min_speed, dt)
                 if resting_pair is not None:
-                    held = resting_pair[redo] & ~(struck[a[redo]] | struck[b[redo]])
+                    held = resting_pair[redo] & ~(touched[a[redo]] | touched[b[redo]])
                     pair_time[redo[held]] = np.inf
             if self.walls is not None:
                 moved = np.flatnonzero(changed & dynamic)
@@ -404,7 +412,7 @@ class SweptContactStage(Stage):
                                                      local_time[moved], self.walls,
                                                      ctx.dimensions, self.gravity, min_speed)
                 if resting_wall is not None:
-                    held = resting_wall[moved] & ~struck[moved, None]
+                    held = resting_wall[moved] & ~touched[moved, None]
                     wall_time[moved] = np.where(held, np.inf, wall_time[moved])
                 first_wall[moved] = wall_time[moved].min(axis=1)
             changed[:] = False
@@ -417,10 +425,11 @@ class SweptContactStage(Stage):
             pairs = pending[chosen]
             wall_hits = np.flatnonzero(walls_due & (first_wall <= earliest))
             self._resolve_pairs(ctx, a[pairs], b[pairs], pair_time[pairs], local_time, changed,
-                                min_speed)
+                                min_speed, None if resting_pair is None else resting_pair[pairs])
             if wall_hits.size:
                 self._resolve_walls(ctx, wall_hits, wall_time[wall_hits], local_time, changed,
-                                    min_speed)
+                                    min_speed,
+                                    None if resting_wall is None else resting_wall[wall_hits])
             if escapes is None:
                 continue
             extra_a, extra_b = escapes.new_pairs(x, v, local_time, dt, changed, a, b)
@@ -441,16 +450,19 @@ class SweptContactStage(Stage):
         the floor): the step-end solve takes them with its threshold and
         shock passes. Taken here, a resting column at e = 1 kept the closing
         speeds its last solve left (a few thresholds) as a wave that never
-        settled (test_hard_cases, case 7). Once any impact here strikes one
-        of their particles, they are impacts again (if they close at the
-        threshold or faster) and taken here in time order, so the shock runs
-        through a resting column with its e (the sequential impact model,
-        case 13), as in the solver. Holding them after a struck particle
-        changed its path let it run through its supports for the rest of
-        the step: a settling pile was compressed (up to 2.5 cm per pair,
-        0.3 m summed per step) and separation later lifted it out beyond
-        the losses of the step it did so, which added energy (the 200-disc
-        pile at e = 0.3, test_effects: up to 0.13 J in 165 of 270 steps).
+        settled (test_hard_cases, case 7). Once any impact here changes one
+        of their particles, they are taken here in time order (if they
+        close at the threshold or faster): held, the changed particle ran
+        through its supports for the rest of the step, compressing a
+        settling pile (up to 2.5 cm per pair, 0.3 m summed in a step) that
+        separation later lifted out beyond the losses of the step it did
+        so, adding energy (the 200-disc pile at e = 0.3, test_effects: up
+        to 0.13 J in 165 of 270 steps). As in the solver, such a contact
+        keeps its e only if an impact of at least STRIKE_FACTOR thresholds
+        struck one of its particles, so the shock runs through a resting
+        column with its e (the sequential impact model, case 13); otherwise
+        it is resting contact, e = 0 (with e = 1 slower shocks kept a
+        packed pile of 500 spreading sideways, case 7).
         """
         s = ctx.state
         reach = s.radius[a] + s.radius[b]
@@ -493,8 +505,12 @@ class SweptContactStage(Stage):
 
     def _resolve_pairs(self, ctx: StepContext, a: np.ndarray, b: np.ndarray, time: np.ndarray,
                        local_time: np.ndarray, changed: np.ndarray,
-                       min_speed: float = 0.0) -> None:
-        """Move the pairs to their impact time and apply the law's impulses."""
+                       min_speed: float = 0.0, resting: Optional[np.ndarray] = None) -> None:
+        """Move the pairs to their impact time and apply the law's impulses.
+
+        ``resting`` marks the pairs in contact at the step start: e = 0 for
+        them unless a particle of theirs was struck (see ``_in_contact``).
+        """
         if not a.size:
             return
         s = ctx.state
@@ -511,6 +527,8 @@ class SweptContactStage(Stage):
         if min_speed > 0.0:
             approach = np.einsum('ij,ij->i', v[b] - v[a], normal)
             e = thresholded(e, approach, min_speed)
+        if resting is not None:
+            e = np.where(resting & ~(self._struck[a] | self._struck[b]), 0.0, e)
         result = apply_pair_impulses(v, s.inv_mass, a, b, normal, e, scale=scale)
         hit = result.hit
         if scale is None:
@@ -531,14 +549,20 @@ class SweptContactStage(Stage):
         record_pairs(ctx.impacts, ctx.time + time[hit], x, s.radius, a[hit], b[hit],
                      normal[hit], result.magnitude[hit], tangential, result.approach[hit])
         ctx.stats.collisions += int(hit.sum())
-        self._struck[a[hit]] = self._struck[b[hit]] = True
+        strikes = hit & (np.asarray(e) > 0.0) & (result.approach >= self._strike_speed)
+        self._struck[a[strikes]] = self._struck[b[strikes]] = True
+        self._touched[a[hit]] = self._touched[b[hit]] = True
         changed[a] = True
         changed[b] = True
 
     def _resolve_walls(self, ctx: StepContext, index: np.ndarray, times: np.ndarray,
                        local_time: np.ndarray, changed: np.ndarray,
-                       min_speed: float = 0.0) -> None:
-        """Move particles to their wall impact and reflect them by the contact law."""
+                       min_speed: float = 0.0, resting: Optional[np.ndarray] = None) -> None:
+        """Move particles to their wall impact and reflect them by the contact law.
+
+        ``resting`` (per particle and wall column) marks contact at the step
+        start: e = 0 there unless the particle was struck (``_in_contact``).
+        """
         s = ctx.state
         when = times.min(axis=1)
         self._advance(ctx, index, when, local_time)
@@ -546,16 +570,20 @@ class SweptContactStage(Stage):
         for axis in range(ctx.dimensions):
             for column, plane, inward in ((2 * axis, self.walls.low[axis], 1.0),
                                           (2 * axis + 1, self.walls.high[axis], -1.0)):
-                hit = index[at_wall[:, column] & (inward * s.velocity[index, axis] < 0.0)]
+                taken = at_wall[:, column] & (inward * s.velocity[index, axis] < 0.0)
+                hit = index[taken]
                 if not hit.size:
                     continue
                 e = wall_coefficient(s.restitution, hit, self.walls.restitution)
                 if min_speed > 0.0:
                     e = thresholded(e, -inward * s.velocity[hit, axis], min_speed)
+                if resting is not None:
+                    e = np.where(resting[taken, column] & ~self._struck[hit], 0.0, e)
                 _, magnitude, approach, removed = apply_wall_impulses(
                     s.velocity, s.inv_mass, hit, axis, inward, e)
                 ctx.book('walls', removed, hit)
-                self._struck[hit] = True       # its resting contacts are impacts now
+                self._struck[hit[(np.asarray(e) > 0.0) & (approach >= self._strike_speed)]] = True
+                self._touched[hit] = True
                 tangential = 0.0
                 if self.friction is not None:
                     normal = np.zeros((hit.size, 3))
