@@ -457,7 +457,7 @@ class SweptContactStage(Stage):
         settling pile (up to 2.5 cm per pair, 0.3 m summed in a step) that
         separation later lifted out beyond the losses of the step it did
         so, adding energy (the 200-disc pile at e = 0.3, test_effects: up
-        to 0.13 J in 165 of 270 steps). As in the solver, such a contact
+        to 0.13 J in 165 of 270 steps for seed 3). As in the solver, such a contact
         keeps its e only if an impact of at least STRIKE_FACTOR thresholds
         struck one of its particles, so the shock runs through a resting
         column with its e (the sequential impact model, case 13); otherwise
