@@ -25,16 +25,17 @@ from .stages.walls import WallStage
 from .step import Pipeline, Stage
 
 
-def swept_contacts_cover(effects: Effects) -> bool:
-    """Say whether the ccd stage simulates every declared effect.
+def needs_contact_solve(effects: Effects) -> bool:
+    """Say whether swept contacts need the step-end contact solve after them.
 
-    It moves particles on straight lines and knows walls and restitution;
-    under gravity, drag or friction (curved paths, tangential impulses,
-    resting-contact threshold) a step falls back to discrete contacts,
-    whose stages implement those effects, and ``explain`` shows it.
+    Without gravity, drag, friction or a restitution threshold every
+    contact is an impact the ccd stage resolves at its time of impact.
+    With any of them, contacts closing slower than the restitution
+    threshold are resting contact, which the ccd stage leaves to the
+    sequential solve (threshold, shock passes, friction) at the step end.
     """
-    return (effects.gravity is None and effects.drag is None and effects.friction is None
-            and effects.restitution_threshold is None)
+    return not (effects.gravity is None and effects.drag is None and effects.friction is None
+                and effects.restitution_threshold is None)
 
 
 def build_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
@@ -46,14 +47,8 @@ def build_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
         return Pipeline([EventDrivenStage(
             effects, accuracy,
             fallback=lambda: build_pipeline(effects, PRESETS[EVENT_FALLBACK]))])
-    if accuracy.ccd and swept_contacts_cover(effects):
-        # Continuous detection: straight paths inside the step, impacts at
-        # their time of impact (walls included), then the leftover overlap.
-        stages: list[Stage] = [
-            SweptContactStage(effects.particle_restitution, effects.walls, accuracy.ordering,
-                              accuracy.iterations, accuracy.requery),
-            NarrowphaseStage(), SeparationStage(walls=effects.walls)]
-        return Pipeline(stages)
+    if accuracy.ccd:
+        return _swept_pipeline(effects, accuracy)
     # Discrete detection at the step end (the lecture's test), with every effect.
     # Motion: free drift, plus gravity's exact completion, or the closed-form
     # drag step (which includes gravity when declared).
@@ -70,19 +65,58 @@ def build_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
         # solved together with the pairs, and separation projects back inside.
         stages.append(WallStage(effects.walls, friction=effects.friction))
     notes = []
-    if accuracy.ccd:
-        notes.append('ccd asked for, but gravity, drag, friction or a restitution threshold '
-                     'is declared: contacts are detected at the step end')
-    # The batched solver knows the same effects as the swept stage.
-    if accuracy.ordering == 'batched' and swept_contacts_cover(effects):
+    # The batched solver knows walls and restitution only.
+    if accuracy.ordering == 'batched' and not needs_contact_solve(effects):
         solver: Stage = BatchedImpulseStage(effects.particle_restitution, accuracy.iterations)
     else:
         if accuracy.ordering == 'batched':
-            notes.append('batched ordering needs the same effects as ccd: contacts are '
-                         'solved sequentially')
+            notes.append('batched ordering covers walls and restitution only: contacts '
+                         'are solved sequentially')
         solver = SequentialImpulseStage(effects.particle_restitution, accuracy.iterations,
                                         friction=effects.friction, walls=effects.walls,
                                         gravity=effects.gravity)
     stages += [BroadphaseStage(), NarrowphaseStage(), solver,
+               SeparationStage(walls=effects.walls)]
+    return Pipeline(stages, note='; '.join(notes))
+
+
+def _swept_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
+    """Continuous detection: impacts at their time of impact, with every effect.
+
+    Paths inside the step are straight, parabolas under gravity, drag's
+    closed form with drag (see ``swept_contacts``). With gravity, drag,
+    friction or a threshold, contacts slower than the restitution threshold
+    are resting contact: the walls stage, the sequential solve (threshold,
+    shock passes, friction) and separation take them at the step end.
+    """
+    notes = []
+    ordering = accuracy.ordering
+    if ordering == 'batched' and effects.friction is not None:
+        # Friction at an impact needs the particle's velocity after that
+        # impact alone, so impacts sharing a particle are taken in turn.
+        ordering = 'sequential'
+        notes.append('batched ordering with friction: impacts are taken sequentially')
+    resting = needs_contact_solve(effects)
+    stages: list[Stage] = []
+    if effects.spin:
+        stages.append(SpinStage())
+    stages.append(SweptContactStage(effects.particle_restitution, effects.walls, ordering,
+                                    accuracy.iterations, accuracy.requery,
+                                    gravity=effects.gravity, drag=effects.drag,
+                                    friction=effects.friction, resting=resting))
+    if not resting:
+        stages += [NarrowphaseStage(), SeparationStage(walls=effects.walls)]
+        return Pipeline(stages, note='; '.join(notes))
+    if effects.walls is not None:
+        # Wall contacts slower than the threshold, found past a plane at the
+        # step end, rest on it (the walls stage's law at its time in the step).
+        stages.append(WallStage(effects.walls, friction=effects.friction))
+    # A fresh candidate search at the step end (as in discrete detection):
+    # it also finds the overlaps of particles an impact sent beyond the
+    # swept stage's list, and gives the solve the discrete pipeline's order.
+    stages += [BroadphaseStage(), NarrowphaseStage(),
+               SequentialImpulseStage(effects.particle_restitution, accuracy.iterations,
+                                      friction=effects.friction, walls=effects.walls,
+                                      gravity=effects.gravity),
                SeparationStage(walls=effects.walls)]
     return Pipeline(stages, note='; '.join(notes))

@@ -66,6 +66,7 @@ from ..accuracy import (AccuracySettings, check_event_mode, check_event_particle
 from ..contact_law import (apply_pair_impulses, apply_wall_impulses, pair_coefficient,
                            record_pairs, record_walls, thresholded, wall_coefficient)
 from ..effects import Effects
+from ..paths import entering_time
 from ..step import Pipeline, Stage, StepContext
 from ..state import ParticleState
 from .narrowphase import line_of_action
@@ -83,30 +84,6 @@ class NotExactable(Exception):
 PARTICLES_PER_CELL = 8.0
 # Steps in a row that go straight to the step solver after fallbacks, at most.
 MAX_FALLBACK_HOLD = 63
-
-
-def entering_time(gap: np.ndarray, rate: np.ndarray, curvature: np.ndarray) -> np.ndarray:
-    """Return the first s >= 0 at which gap + rate s + curvature s^2 / 2 falls to 0.
-
-    ``gap`` >= 0 is inside; a gap at or below zero that is closing (or not
-    opening while pushed in) counts as now. inf where it never happens.
-    """
-    # An open side of the walls is a plane at infinity: its gap is inf and the
-    # products below are NaN; a subnormal rate overflows a time to inf. Both
-    # read as never, which is right.
-    with np.errstate(invalid='ignore', over='ignore', divide='ignore'):
-        disc = rate * rate - 2.0 * curvature * gap
-        root = np.sqrt(np.maximum(disc, 0.0))
-        closing = rate < 0.0
-        curved = curvature != 0.0
-        # The entering root has slope -sqrt(disc); take its cancellation-free form.
-        quadratic = np.where(closing, 2.0 * gap / np.where(closing, root - rate, 1.0),
-                             (-rate - root) / np.where(curved, curvature, 1.0))
-        linear = np.where(closing, gap / np.where(closing, -rate, 1.0), np.inf)
-    s = np.where(curved, np.where(disc >= 0.0, quadratic, np.inf), linear)
-    s[~(s > 0.0)] = np.inf
-    s[(gap <= 0.0) & (closing | ((rate == 0.0) & (curvature < 0.0)))] = 0.0
-    return s
 
 
 class EventDrivenStage(Stage):
