@@ -82,6 +82,7 @@ class CollisionNode(Node):
         self.pacer = Pacer(self.world.dt, self.real_time_factor, time.monotonic(),
                            self.world.time)
         self.meter = RateMeter()
+        self.ticks = 0
         self.meter.add(time.monotonic(), self.world.time, self._collisions())
 
         self.pub_poses = self.create_publisher(PoseArray, 'particles/poses', STATE_QOS)
@@ -190,6 +191,11 @@ class CollisionNode(Node):
 
     def _tick(self) -> None:
         """Step, then publish every output somebody subscribes to."""
+        if self.ticks == 0:
+            # Simulated time starts with the first tick, not at construction: the
+            # start-up (interfaces, kernels from the cache) is no backlog to drop.
+            self.pacer.restart(time.monotonic(), self.world.time)
+        self.ticks += 1
         if not self.paused and self.failed is None:
             self._advance()
         self.meter.add(time.monotonic(), self.world.time, self._collisions())
