@@ -52,6 +52,24 @@ def drag_step(v0: np.ndarray, inv_mass: np.ndarray, drag: Drag, gravity: Optiona
     return displacement, velocity
 
 
+def advance_with_drag(ctx: StepContext, index: np.ndarray, drag: Drag,
+                      gravity: Optional[np.ndarray], tau: float | np.ndarray) -> None:
+    """Move particles ``index`` by ``tau`` s (one or per particle) of drag; book its work.
+
+    The loss booked is the drag force's own work per particle: the kinetic
+    energy change less gravity's work along the displacement.
+    """
+    s = ctx.state
+    v0 = s.velocity[index]
+    displacement, velocity = drag_step(v0, s.inv_mass[index], drag, gravity, tau)
+    s.position[index] += displacement
+    s.velocity[index] = velocity
+    work = 0.5 * np.einsum('ij,ij->i', v0 - velocity, v0 + velocity)
+    if gravity is not None:
+        work += displacement @ gravity
+    ctx.book('drag', work / s.inv_mass[index], index)
+
+
 class DragStage(Stage):
     """Move particles under drag (and gravity, if declared) for one step."""
 
@@ -68,14 +86,7 @@ class DragStage(Stage):
         dyn = np.flatnonzero(s.dynamic)
         if not dyn.size:
             return
-        v0 = s.velocity[dyn]
-        displacement, velocity = drag_step(v0, s.inv_mass[dyn], self.drag, self.gravity, ctx.dt)
-        s.position[dyn] += displacement
-        s.velocity[dyn] = velocity
-        work = 0.5 * np.einsum('ij,ij->i', v0 - velocity, v0 + velocity)
-        if self.gravity is not None:
-            work += displacement @ self.gravity
-        ctx.book('drag', work / s.inv_mass[dyn], dyn)
+        advance_with_drag(ctx, dyn, self.drag, self.gravity, ctx.dt)
 
     def describe(self) -> str:
         """Say what the stage does."""

@@ -70,7 +70,7 @@ from ..paths import entering_time, parabola_sphere_time
 from ..step import Stage, StepContext
 from .batched_impulses import shared_scale
 from .broadphase import BroadphaseStage
-from .drag import drag_step
+from .drag import advance_with_drag
 from .narrowphase import line_of_action
 
 
@@ -340,16 +340,8 @@ class SweptContactStage(Stage):
         tau = when - local_time[index]
         local_time[index] = when
         if self.drag is not None:
-            v0 = s.velocity[index]
-            displacement, velocity = drag_step(v0, s.inv_mass[index], self.drag,
-                                               self.gravity, tau)
-            s.position[index] += displacement
-            s.velocity[index] = velocity
-            # The drag force's own work, as the drag stage books it.
-            work = 0.5 * np.einsum('ij,ij->i', v0 - velocity, v0 + velocity)
-            if self.gravity is not None:
-                work += displacement @ self.gravity
-            ctx.book('drag', work / s.inv_mass[index], index)
+            # Booked as the drag stage books it: the drag force's own work.
+            advance_with_drag(ctx, index, self.drag, self.gravity, tau)
             return
         s.position[index], s.velocity[index] = _on_path(
             s.position[index], s.velocity[index],
