@@ -57,24 +57,36 @@ def point_cloud_writer(ids: np.ndarray, position: np.ndarray, velocity: np.ndarr
                        radius: np.ndarray, inv_mass: np.ndarray, seconds: float,
                        frame_id: str) -> CdrWriter:
     """Return the CDR writer holding the particles as an unordered PointCloud2."""
-    data = point_records(ids, position, velocity, radius, inv_mass).tobytes()
-    n = ids.shape[0]
+    # is_dense: positions are always finite.
+    return unordered_cloud_writer(point_records(ids, position, velocity, radius, inv_mass),
+                                  POINT_FIELDS, POINT_STEP, seconds, frame_id)
+
+
+def unordered_cloud_writer(records: np.ndarray, fields, point_step: int, seconds: float,
+                           frame_id: str) -> CdrWriter:
+    """Return the CDR writer of an unordered, dense PointCloud2 of ``records``.
+
+    ``records`` is a structured array laid out as ``fields`` ((name, offset,
+    datatype) triples) with ``point_step`` bytes per point.
+    """
+    data = records.tobytes()
+    n = records.shape[0]
     writer = CdrWriter()
     writer.header(*stamp_from_seconds(seconds), frame_id)
     writer.uint32(1)                 # height: an unordered cloud is one row
     writer.uint32(n)                 # width
-    writer.uint32(len(POINT_FIELDS))
-    for name, offset, datatype in POINT_FIELDS:
+    writer.uint32(len(fields))
+    for name, offset, datatype in fields:
         writer.string(name)
         writer.uint32(offset)
         writer.uint8(datatype)
         writer.uint32(1)             # count
     writer.uint8(0)                  # is_bigendian
-    writer.uint32(POINT_STEP)
-    writer.uint32(POINT_STEP * n)    # row_step
+    writer.uint32(point_step)
+    writer.uint32(point_step * n)    # row_step
     writer.uint32(len(data))
     writer.raw(data)
-    writer.uint8(1)                  # is_dense: positions are always finite
+    writer.uint8(1)                  # is_dense: every point is finite
     return writer
 
 

@@ -19,8 +19,7 @@ import numpy as np
 from sensor_msgs.msg import PointCloud2, PointField
 
 from .cdr import CdrWriter
-from .cloud import records_from_point_cloud
-from .stamp import stamp_from_seconds
+from .cloud import records_from_point_cloud, unordered_cloud_writer
 
 FIELDS = (('time', '<f8'), ('i', '<i4'), ('j', '<i4'),
           ('x', '<f8'), ('y', '<f8'), ('z', '<f8'),
@@ -50,25 +49,9 @@ def impact_points(impacts: np.ndarray) -> np.ndarray:
 
 def impact_cloud_writer(impacts: np.ndarray, seconds: float, frame_id: str) -> CdrWriter:
     """Return the CDR writer holding the impacts as an unordered PointCloud2."""
-    data = impact_points(impacts).tobytes()
-    n = impacts.shape[0]
-    writer = CdrWriter()
-    writer.header(*stamp_from_seconds(seconds), frame_id)
-    writer.uint32(1)                 # height: an unordered cloud is one row
-    writer.uint32(n)                 # width
-    writer.uint32(len(IMPACT_POINT_FIELDS))
-    for name, offset, datatype in IMPACT_POINT_FIELDS:
-        writer.string(name)
-        writer.uint32(offset)
-        writer.uint8(datatype)
-        writer.uint32(1)             # count
-    writer.uint8(0)                  # is_bigendian
-    writer.uint32(IMPACT_POINT_STEP)
-    writer.uint32(IMPACT_POINT_STEP * n)   # row_step
-    writer.uint32(len(data))
-    writer.raw(data)
-    writer.uint8(1)                  # is_dense: every impact is finite
-    return writer
+    # is_dense: every impact is finite.
+    return unordered_cloud_writer(impact_points(impacts), IMPACT_POINT_FIELDS,
+                                  IMPACT_POINT_STEP, seconds, frame_id)
 
 
 def impact_cloud_bytes(impacts: np.ndarray, seconds: float, frame_id: str) -> bytes:
