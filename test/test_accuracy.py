@@ -14,20 +14,12 @@ from collision_node.physics.reference import missed_collisions
 from collision_node.physics.effects import Effects
 from collision_node.simulate import main as simulate_main
 from collision_node.physics.stages.broadphase import ALL_PAIRS_UP_TO
+from lecture_reference import lecture_update
 
 
 def world(accuracy, **scene) -> World:
     """Return a world for an inline scene under ``accuracy``."""
     return World(parse_scene(dict(accuracy=accuracy, **scene), 'test-scene'))
-
-
-def lecture_update(m1, m2, v1, v2, normal):
-    """Return the lecture's post-impact velocities (e = 1), written as on the slides."""
-    n = np.asarray(normal, float) / np.linalg.norm(normal)
-    a1, a2 = np.dot(v1, n), np.dot(v2, n)
-    b1 = ((m1 - m2) * a1 + 2 * m2 * a2) / (m1 + m2)
-    b2 = ((m2 - m1) * a2 + 2 * m1 * a1) / (m1 + m2)
-    return v1 - a1 * n + b1 * n, v2 - a2 * n + b2 * n
 
 
 def gas(count, radius, speed, dt, seed=3, size=1.0, dimensions=3, restitution=None):

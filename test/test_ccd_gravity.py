@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from collision_node import World, parse_scene
+from lecture_reference import lecture_update
 
 G = 9.81
 GRAVITY3 = [0.0, -G, 0.0]
@@ -23,15 +24,6 @@ def make(accuracy, particles, effects, dt=1 / 60, dimensions=3):
     """Return a world for inline particles and effects."""
     return World(parse_scene({'dimensions': dimensions, 'dt': dt, 'accuracy': accuracy,
                               'effects': effects, 'particles': particles}, 'test-scene'))
-
-
-def lecture_update(m1, m2, v1, v2, normal):
-    """Return the lecture's post-impact velocities (e = 1), written as on the slides."""
-    n = np.asarray(normal, float) / np.linalg.norm(normal)
-    a1, a2 = np.dot(v1, n), np.dot(v2, n)
-    b1 = ((m1 - m2) * a1 + 2 * m2 * a2) / (m1 + m2)
-    b2 = ((m2 - m1) * a2 + 2 * m1 * a1) / (m1 + m2)
-    return v1 - a1 * n + b1 * n, v2 - a2 * n + b2 * n
 
 
 def assert_balance(world, rel=1e-9):
