@@ -178,7 +178,10 @@ class CollisionNode(Node):
             self.failed = str(error)
             self.get_logger().error(f'stopped stepping: {error}; reset to go on')
             return
-        change = self.lag.note(time.monotonic(), dropped > 0.0 or done < due, dropped)
+        # Behind: the physics could not do what was due, or a late tick cost more
+        # than a step (less is scheduler jitter: dropped and counted, not a lag).
+        behind = done < due or dropped > self.world.dt
+        change = self.lag.note(time.monotonic(), behind, dropped)
         self.keeping_up = not self.lag.behind
         if change == 'start':
             self.get_logger().warning(
