@@ -94,6 +94,18 @@ BENCH_TOPICS = {'bench/poses': (PoseArray, STATE_QOS), 'bench/state': (PointClou
                 'particles/poses': (PoseArray, STATE_QOS)}
 
 
+def spin_until_stopped(node: Node) -> int:
+    """Spin ``node`` until Ctrl-C, SIGTERM or shutdown, then clean up; return 0."""
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
 def run_sink() -> int:
     """Subscribe (raw, no deserialising) to every benchmark topic until interrupted.
 
@@ -104,14 +116,7 @@ def run_sink() -> int:
     node = Node('bench_sink')
     for name, (msg_type, qos) in BENCH_TOPICS.items():
         node.create_subscription(msg_type, name, lambda _: None, qos, raw=True)
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return spin_until_stopped(node)
 
 
 def wait_matched(executor: SingleThreadedExecutor, publishers: list) -> None:

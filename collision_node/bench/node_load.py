@@ -53,7 +53,7 @@ from geometry_msgs.msg import PoseArray
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from rclpy.context import Context
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Empty, String
@@ -63,6 +63,7 @@ from msg_adapters.cdr import CdrWriter
 from msg_adapters.strings import string_bytes
 
 from ..ros.qos import COMMAND_QOS, fastdds_profiles, STATE_QOS, STATUS_QOS
+from .node import spin_until_stopped
 
 NODE_NAME = 'collision_node'
 SPAWN_RADIUS = 0.005          # m, the flood's and the latency probes' particles
@@ -620,14 +621,7 @@ def responder() -> int:
     spawn = node.create_subscription(String, 'spawn', on_spawn, COMMAND_QOS, raw=True)
     node.create_subscription(Empty, 'reset', lambda _: answer('reset'), COMMAND_QOS)
     node.create_timer(0.5, lambda: status.publish(String(data='{}')))
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return spin_until_stopped(node)
 
 
 # -- command ----------------------------------------------------------------
