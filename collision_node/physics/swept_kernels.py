@@ -105,7 +105,7 @@ def parabola_sphere_time(ox, oy, oz, cx, cy, cz, ax, ay, az, horizon):
     return first * span
 
 
-@njit(cache=True, error_model='numpy')
+@njit(cache=True, error_model='numpy', inline='always')
 def entering_time(gap, rate, curvature):
     """First s >= 0 at which gap + rate s + curvature s^2 / 2 falls to 0 (``paths``)."""
     disc = rate * rate - 2.0 * curvature * gap
@@ -125,7 +125,20 @@ def entering_time(gap, rate, curvature):
     return s
 
 
-@njit(cache=True, error_model='numpy')
+@njit(cache=True, inline='always')
+def _relative(x, v, a, b, k, ta, tb, ga, gb, has_gravity):
+    """Return component k of (offset, relative velocity) of a and b moved to a common time.
+
+    On their parabolas under gravity (``ga``, ``gb``: each one's fall), as ``_on_path``.
+    """
+    if has_gravity:
+        pa = x[a, k] + v[a, k] * ta + 0.5 * ga * ta * ta
+        pb = x[b, k] + v[b, k] * tb + 0.5 * gb * tb * tb
+        return pa - pb, (v[a, k] + ga * ta) - (v[b, k] + gb * tb)
+    return (x[a, k] + v[a, k] * ta) - (x[b, k] + v[b, k] * tb), v[a, k] - v[b, k]
+
+
+@njit(cache=True, error_model='numpy', inline='always')
 def pair_time(x, v, radius, local_time, dynamic, a, b, gravity, has_gravity, min_speed,
               horizon):
     """Time of impact of pair (a, b) on the step clock (``pair_impact_times``), inf for none."""
@@ -134,23 +147,19 @@ def pair_time(x, v, radius, local_time, dynamic, a, b, gravity, has_gravity, min
     ta, tb = start - local_time[a], start - local_time[b]
     fa = 1.0 if dynamic[a] else 0.0
     fb = 1.0 if dynamic[b] else 0.0
-    p = np.empty(3)
-    u = np.empty(3)
-    acc = np.zeros(3)
-    curved = False
-    for k in range(3):
-        if has_gravity:
-            ga, gb = gravity[k] * fa, gravity[k] * fb
-            pa = x[a, k] + v[a, k] * ta + 0.5 * ga * ta * ta
-            pb = x[b, k] + v[b, k] * tb + 0.5 * gb * tb * tb
-            va, vb = v[a, k] + ga * ta, v[b, k] + gb * tb
-            acc[k] = (ga - gb) / reach
-            curved = curved or acc[k] != 0.0
-        else:
-            pa, pb = x[a, k] + v[a, k] * ta, x[b, k] + v[b, k] * tb
-            va, vb = v[a, k], v[b, k]
-        p[k] = pa - pb
-        u[k] = va - vb
+    # Scalars, not small arrays: an allocation per pair would cost more than the root.
+    px, vx_ = _relative(x, v, a, b, 0, ta, tb, gravity[0] * fa, gravity[0] * fb, has_gravity)
+    py, vy_ = _relative(x, v, a, b, 1, ta, tb, gravity[1] * fa, gravity[1] * fb, has_gravity)
+    pz, vz_ = _relative(x, v, a, b, 2, ta, tb, gravity[2] * fa, gravity[2] * fb, has_gravity)
+    p = (px, py, pz)
+    u = (vx_, vy_, vz_)
+    acc0 = acc1 = acc2 = 0.0
+    if has_gravity:
+        acc0 = (gravity[0] * fa - gravity[0] * fb) / reach
+        acc1 = (gravity[1] * fa - gravity[1] * fb) / reach
+        acc2 = (gravity[2] * fa - gravity[2] * fb) / reach
+    curved = acc0 != 0.0 or acc1 != 0.0 or acc2 != 0.0
+    acc = (acc0, acc1, acc2)
     ox, oy, oz = p[0] / reach, p[1] / reach, p[2] / reach
     cx, cy, cz = u[0] / reach, u[1] / reach, u[2] / reach
     half_b = _dot(ox, oy, oz, cx, cy, cz)
@@ -188,10 +197,10 @@ def pair_time(x, v, radius, local_time, dynamic, a, b, gravity, has_gravity, min
     return start + delay
 
 
-@njit(cache=True, error_model='numpy')
+@njit(cache=True, error_model='numpy', inline='always')
 def wall_times(x, v, radius, local_time, p, low, high, dimensions, gravity, has_gravity,
                min_speed, out):
-    """Write particle p's impact times with each wall to ``out`` (``wall_impact_times``)."""
+    """Write particle p's impact times with each wall to row p of ``out`` (``wall_impact_times``)."""
     r = radius[p]
     for axis in range(dimensions):
         pos, vel = x[p, axis], v[p, axis]
@@ -206,7 +215,7 @@ def wall_times(x, v, radius, local_time, p, low, high, dimensions, gravity, has_
                     speed = -(rate + curvature * (s if np.isfinite(s) else 0.0))
                     if not speed >= min_speed:
                         s = np.inf
-                out[column] = local_time[p] + s
+                out[p, column] = local_time[p] + s
         else:
             lo = (gap_low if not gap_low < 0.0 else 0.0) / -vel if vel < 0.0 else np.inf
             hi = (gap_high if not gap_high < 0.0 else 0.0) / vel if vel > 0.0 else np.inf
@@ -215,11 +224,11 @@ def wall_times(x, v, radius, local_time, p, low, high, dimensions, gravity, has_
                     lo = np.inf
                 if not vel >= min_speed:
                     hi = np.inf
-            out[2 * axis] = local_time[p] + lo
-            out[2 * axis + 1] = local_time[p] + hi
+            out[p, 2 * axis] = local_time[p] + lo
+            out[p, 2 * axis + 1] = local_time[p] + hi
 
 
-@njit(cache=True, error_model='numpy')
+@njit(cache=True, error_model='numpy', inline='always')
 def _advance(x, v, local_time, p, when, gravity, has_gravity):
     """Move particle p on its drag-free path to ``when`` (``SweptContactStage._advance``)."""
     tau = when - local_time[p]
@@ -263,12 +272,67 @@ def _grow(records, index, count):
     return bigger, bigger_index
 
 
+@njit(cache=True, error_model='numpy', inline='always')
+def _predict_pair(k, x, v, radius, local_time, dynamic, a, b, gravity, has_gravity, min_speed,
+                  dt, has_resting, resting_pair, touched, pair_t, listed, pending, n_pending):
+    """Predict pair k again; list it if due in the step; return the pending count."""
+    i, j = a[k], b[k]
+    t = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, has_gravity, min_speed, dt)
+    if has_resting and resting_pair[k] and not (touched[i] or touched[j]):
+        t = np.inf
+    pair_t[k] = t
+    if t <= dt and not listed[k]:
+        listed[k] = True
+        pending[n_pending] = k
+        n_pending += 1
+    return n_pending
+
+
+@njit(cache=True, error_model='numpy', inline='always')
+def _predict_walls(p, x, v, radius, local_time, low, high, dimensions, gravity, has_gravity,
+                   min_speed, dt, has_resting, resting_wall, touched, wall_t, first_wall,
+                   wall_listed, wall_due, n_wall_due):
+    """Predict particle p's wall impacts again; list it if due; return the due count."""
+    wall_times(x, v, radius, local_time, p, low, high, dimensions, gravity, has_gravity,
+               min_speed, wall_t)
+    first = np.inf
+    for col in range(2 * dimensions):
+        if has_resting and resting_wall[p, col] and not touched[p]:
+            wall_t[p, col] = np.inf
+        if wall_t[p, col] < first:
+            first = wall_t[p, col]
+    first_wall[p] = first
+    if first <= dt and not wall_listed[p]:
+        wall_listed[p] = True
+        wall_due[n_wall_due] = p
+        n_wall_due += 1
+    return n_wall_due
+
+
+def workspace_sizes(n: int, m: int, dimensions: int) -> tuple[int, int, int]:
+    """Return the (int, float, bool) scratch sizes ``sweep`` needs for n particles, m pairs."""
+    return 4 * m + 9 * n + 1, 2 * n * dimensions + 3 * n + m, 4 * n + m
+
+
+def workspace(n: int, m: int, dimensions: int, old=None) -> tuple:
+    """Return scratch buffers for ``sweep``: ``old`` if large enough, else new ones."""
+    sizes = workspace_sizes(n, m, dimensions)
+    if old is not None and all(buf.size >= size for buf, size in zip(old, sizes)):
+        return old
+    # Some room to grow, so a step with a few more pairs does not reallocate.
+    return (np.empty(sizes[0] + sizes[0] // 4, dtype=np.int64),
+            np.empty(sizes[1] + sizes[1] // 4), np.empty(sizes[2] + sizes[2] // 4, dtype=bool))
+
+
 @njit(cache=True, error_model='numpy')
 def sweep(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, has_own_mu,
           restitution, wall_restitution, friction, mu, has_walls, low, high, dimensions,
           gravity, has_gravity, resting_pair, resting_wall, has_resting, min_speed,
-          strike_speed, dt, rounds, planar, record, loss, totals, counts):
+          strike_speed, dt, rounds, planar, record, loss, totals, counts, workspace):
     """Run one step of the swept stage in place; see ``SweptContactStage`` for the rules.
+
+    ``workspace``: (int64, float64, bool) buffers of at least
+    ``workspace_sizes(n, m, dimensions)`` elements.
 
     ``a``, ``b``: the candidate pairs (at least one particle dynamic).
     Fills ``loss`` (rows as ``EFFECTS``, per particle), ``totals`` (per
@@ -281,81 +345,86 @@ def sweep(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, 
     n = x.shape[0]
     m = a.size
     columns = 2 * dimensions
+    # Scratch from the caller's buffers (``workspace_sizes``), kept between
+    # steps: fresh arrays of this size cost page faults every step.
+    ints, floats, flags = workspace
+    start, ints = ints[:n + 1], ints[n + 1:]
+    fill, ints = ints[:n], ints[n:]
+    incident, ints = ints[:2 * m], ints[2 * m:]
+    seen, ints = ints[:m], ints[m:]
+    pending, ints = ints[:m], ints[m:]
+    changed, ints = ints[:n], ints[n:]
+    wall_due, ints = ints[:n], ints[n:]
+    best_k, ints = ints[:n], ints[n:]
+    best_round, ints = ints[:n], ints[n:]
+    chosen, hits = ints[:n], ints[n:2 * n]
+    local_time, floats = floats[:n], floats[n:]
+    pair_t, floats = floats[:m], floats[m:]
+    wall_t = floats[:n * columns].reshape((n, columns))
+    first_wall, best_t = floats[n * columns:n * columns + n], floats[n * columns + n:
+                                                                     n * columns + 2 * n]
+    struck, touched, is_changed = flags[:n], flags[n:2 * n], flags[2 * n:3 * n]
+    listed, wall_listed = flags[3 * n:3 * n + m], flags[3 * n + m:4 * n + m]
+    start[:] = 0
+    flags[:4 * n + m] = False
+    local_time[:] = 0.0
+    pair_t[:] = np.inf
+    wall_t[:, :] = np.inf
+    first_wall[:] = np.inf
+    best_t[:] = np.inf
+    seen[:] = -1
+    best_k[:] = m
+    best_round[:] = -1
     # Pairs of each particle (counting sort): who to predict again when it changes.
-    start = np.zeros(n + 1, dtype=np.int64)
     for k in range(m):
         start[a[k] + 1] += 1
         start[b[k] + 1] += 1
     for p in range(n):
         start[p + 1] += start[p]
-    fill = start[:n].copy()
-    incident = np.empty(2 * m, dtype=np.int64)
+    fill[:] = start[:n]
     for k in range(m):
         incident[fill[a[k]]] = k
         fill[a[k]] += 1
         incident[fill[b[k]]] = k
         fill[b[k]] += 1
-    local_time = np.zeros(n)
-    pair_t = np.full(m, np.inf)
-    wall_t = np.full((n, columns), np.inf)
-    first_wall = np.full(n, np.inf)
-    struck = np.zeros(n, dtype=np.bool_)
-    touched = np.zeros(n, dtype=np.bool_)
-    # Particles changed in the last round (all at the start).
-    changed = np.arange(n)
+    # Particles changed in the last round (all at the start); pending pairs
+    # (time <= dt) and particles with a pending wall impact.
+    for p in range(n):
+        changed[p] = p
     n_changed = n
-    is_changed = np.zeros(n, dtype=np.bool_)
-    seen = np.full(m, -1, dtype=np.int64)
-    # Pending pairs (time <= dt) and particles with a pending wall impact.
-    pending = np.empty(m, dtype=np.int64)
     n_pending = 0
-    listed = np.zeros(m, dtype=np.bool_)
-    wall_due = np.empty(n, dtype=np.int64)
     n_wall_due = 0
-    wall_listed = np.zeros(n, dtype=np.bool_)
-    best_t = np.full(n, np.inf)
-    best_k = np.full(n, m, dtype=np.int64)
-    best_round = np.full(n, -1, dtype=np.int64)
-    chosen = np.empty(m, dtype=np.int64)
-    hits = np.empty(n, dtype=np.int64)
     records = np.empty((16, RECORD_WIDTH))
     index = np.empty((16, 2), dtype=np.int64)
     count = 0
     rounds_run = 0
     for round_ in range(rounds):
         rounds_run += 1
-        # Predict again the pairs and walls of the particles that changed.
+        # Predict again the pairs and walls of the particles that changed
+        # (in the first round every pair, in pair order, then every particle).
+        if round_ == 0:
+            for k in range(m):
+                n_pending = _predict_pair(k, x, v, radius, local_time, dynamic, a, b, gravity,
+                                          has_gravity, min_speed, dt, has_resting,
+                                          resting_pair, touched, pair_t, listed, pending,
+                                          n_pending)
         for c in range(n_changed):
             p = changed[c]
-            for e_ in range(start[p], start[p + 1]):
-                k = incident[e_]
-                if seen[k] == round_:
-                    continue
-                seen[k] = round_
-                i, j = a[k], b[k]
-                t = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, has_gravity,
-                              min_speed, dt)
-                if has_resting and resting_pair[k] and not (touched[i] or touched[j]):
-                    t = np.inf
-                pair_t[k] = t
-                if t <= dt and not listed[k]:
-                    listed[k] = True
-                    pending[n_pending] = k
-                    n_pending += 1
+            if round_ > 0:
+                for e_ in range(start[p], start[p + 1]):
+                    k = incident[e_]
+                    if seen[k] == round_:
+                        continue
+                    seen[k] = round_
+                    n_pending = _predict_pair(k, x, v, radius, local_time, dynamic, a, b,
+                                              gravity, has_gravity, min_speed, dt,
+                                              has_resting, resting_pair, touched, pair_t,
+                                              listed, pending, n_pending)
             if has_walls and dynamic[p]:
-                wall_times(x, v, radius, local_time, p, low, high, dimensions, gravity,
-                           has_gravity, min_speed, wall_t[p])
-                first = np.inf
-                for col in range(columns):
-                    if has_resting and resting_wall[p, col] and not touched[p]:
-                        wall_t[p, col] = np.inf
-                    if wall_t[p, col] < first:
-                        first = wall_t[p, col]
-                first_wall[p] = first
-                if first <= dt and not wall_listed[p]:
-                    wall_listed[p] = True
-                    wall_due[n_wall_due] = p
-                    n_wall_due += 1
+                n_wall_due = _predict_walls(p, x, v, radius, local_time, low, high, dimensions,
+                                            gravity, has_gravity, min_speed, dt, has_resting,
+                                            resting_wall, touched, wall_t, first_wall,
+                                            wall_listed, wall_due, n_wall_due)
         for c in range(n_changed):
             is_changed[changed[c]] = False
         n_changed = 0
@@ -541,4 +610,5 @@ def _warm_up() -> None:
               True, np.full(3, np.nan), True, 1.0, 1.0, True, 0.5, True, low, high, 3,
               gravity, bool(gravity.any()), np.zeros(2, dtype=bool),
               np.zeros((3, 6), dtype=bool), True, 0.1, 1.0, 1.0, 32, False, True,
-              np.zeros((3, 3)), np.zeros(3), np.zeros(4, dtype=np.int64))
+              np.zeros((3, 3)), np.zeros(3), np.zeros(4, dtype=np.int64),
+              workspace(3, 2, 3))

@@ -67,7 +67,7 @@ from ..contact_law import (apply_pair_friction, apply_pair_impulses, apply_wall_
                            thresholded, wall_coefficient)
 from ..effects import Drag, Walls
 from ..paths import entering_time, parabola_sphere_time
-from ..swept_kernels import EFFECTS as KERNEL_EFFECTS, sweep
+from ..swept_kernels import EFFECTS as KERNEL_EFFECTS, sweep, workspace
 from ..step import Stage, StepContext
 from .batched_impulses import shared_scale
 from .broadphase import BroadphaseStage
@@ -333,6 +333,7 @@ class SweptContactStage(Stage):
         self.friction = friction
         # False: always the numpy rounds (tests compare the two paths).
         self.compiled = True
+        self._workspace = None
 
     def _advance(self, ctx: StepContext, index: np.ndarray, when: np.ndarray,
                  local_time: np.ndarray) -> None:
@@ -405,6 +406,7 @@ class SweptContactStage(Stage):
         loss = np.zeros((len(KERNEL_EFFECTS), n))
         totals = np.zeros(len(KERNEL_EFFECTS))
         counts = np.zeros(4, dtype=np.int64)
+        self._workspace = workspace(n, a.size, d, self._workspace)
         records, index = sweep(
             s.position, s.velocity, spin, s.inv_mass, s.radius, dynamic, a, b,
             own_e, s.restitution is not None, own_mu, s.friction is not None,
@@ -412,7 +414,8 @@ class SweptContactStage(Stage):
             self.friction is not None, float(self.friction or 0.0), walls is not None,
             low, high, d, gravity, self.gravity is not None, resting_pair, resting_wall,
             has_resting, float(min_speed), STRIKE_FACTOR * min_speed, float(dt),
-            int(self.rounds), d == 2, ctx.impacts is not None, loss, totals, counts)
+            int(self.rounds), d == 2, ctx.impacts is not None, loss, totals, counts,
+            self._workspace)
         # The effects the numpy rounds book: restitution when a pair was resolved,
         # walls and friction when one hit.
         booked = (counts[3] > 0, counts[1] > 0,
