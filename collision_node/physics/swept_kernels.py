@@ -200,7 +200,10 @@ def pair_time(x, v, radius, local_time, dynamic, a, b, gravity, has_gravity, min
 @njit(cache=True, error_model='numpy', inline='always')
 def wall_times(x, v, radius, local_time, p, low, high, dimensions, gravity, has_gravity,
                min_speed, out):
-    """Write particle p's impact times with each wall to row p of ``out`` (``wall_impact_times``)."""
+    """Write particle p's times of impact with each wall to row p of ``out``.
+
+    As ``swept_contacts.wall_impact_times`` for one particle.
+    """
     r = radius[p]
     for axis in range(dimensions):
         pos, vel = x[p, axis], v[p, axis]
@@ -243,7 +246,7 @@ def _advance(x, v, local_time, p, when, gravity, has_gravity):
 
 @njit(cache=True)
 def _coefficient(own, has_own, p, q, default):
-    """The combine rule (``contact_law.combine``) for p and q (q < 0: a wall)."""
+    """Return the coefficient of p and q (q < 0: a wall) by ``contact_law.combine``."""
     if not has_own:
         return default
     own_p = own[p]
@@ -455,8 +458,8 @@ def sweep(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, 
             k = pending[q]
             t = pair_t[k]
             for p in (a[k], b[k]):
-                if best_round[p] != round_ or t < best_t[p] or (t == best_t[p]
-                                                                 and k < best_k[p]):
+                if best_round[p] != round_ or t < best_t[p] or \
+                        (t == best_t[p] and k < best_k[p]):
                     best_round[p] = round_
                     best_t[p] = t
                     best_k[p] = k

@@ -54,6 +54,11 @@ default under gravity, 0 otherwise); slower contacts are resting contact
 to the step-end stages after this one: walls, narrowphase, the sequential
 solve with its threshold, shock passes and friction, and separation.
 Taking them here would be Zeno's loop of ever smaller bounces.
+
+The rounds run compiled (``swept_kernels.sweep``, the same formulas in the
+same order) for sequential ordering without drag or requery; the numpy
+rounds below are the reference the kernel is tested against and still run
+drag, requery and batched ordering.
 """
 
 from __future__ import annotations
@@ -434,7 +439,7 @@ class SweptContactStage(Stage):
                                records[:, 9])
 
     def _run_numpy(self, ctx: StepContext) -> None:
-        """The stage in numpy rounds: the reference the compiled step is tested against."""
+        """Run the stage in numpy rounds: the reference the compiled step is tested against."""
         s, dt = ctx.state, ctx.dt
         n = len(s)
         x, v, dynamic = s.position, s.velocity, s.dynamic
