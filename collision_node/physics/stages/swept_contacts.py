@@ -54,6 +54,11 @@ default under gravity, 0 otherwise); slower contacts are resting contact
 to the step-end stages after this one: walls, narrowphase, the sequential
 solve with its threshold, shock passes and friction, and separation.
 Taking them here would be Zeno's loop of ever smaller bounces.
+
+The rounds run compiled (``swept_kernels.sweep``, the same formulas in the
+same order) for sequential ordering without drag or requery; the numpy
+rounds below are the reference the kernel is tested against and still run
+drag, requery and batched ordering.
 """
 
 from __future__ import annotations
@@ -67,6 +72,7 @@ from ..contact_law import (apply_pair_friction, apply_pair_impulses, apply_wall_
                            thresholded, wall_coefficient)
 from ..effects import Drag, Walls
 from ..paths import entering_time, parabola_sphere_time
+from ..swept_kernels import EFFECTS as KERNEL_EFFECTS, sweep, workspace
 from ..step import Stage, StepContext
 from .batched_impulses import shared_scale
 from .broadphase import BroadphaseStage
@@ -330,6 +336,9 @@ class SweptContactStage(Stage):
         self.gravity = None if gravity is None else np.asarray(gravity, dtype=float)
         self.drag = drag
         self.friction = friction
+        # False: always the numpy rounds (tests compare the two paths).
+        self.compiled = True
+        self._workspace = None
 
     def _advance(self, ctx: StepContext, index: np.ndarray, when: np.ndarray,
                  local_time: np.ndarray) -> None:
@@ -348,7 +357,89 @@ class SweptContactStage(Stage):
             None if self.gravity is None else self.gravity[None, :], tau)
 
     def run(self, ctx: StepContext) -> None:
-        """Advance positions to the end of the step, applying impacts on the way."""
+        """Advance positions to the end of the step, applying impacts on the way.
+
+        The compiled step (``swept_kernels.sweep``) runs it when it covers
+        the stage's settings (sequential ordering, no drag, no requery);
+        otherwise, or with ``compiled`` False, the numpy rounds below.
+        """
+        if self.compiled and self.ordering == 'sequential' and self.drag is None \
+                and not self.requery:
+            self._run_compiled(ctx)
+        else:
+            self._run_numpy(ctx)
+
+    def _travel(self, ctx: StepContext) -> np.ndarray:
+        """Return how far each particle can travel in the step (the broadphase's allowance)."""
+        s, dt = ctx.state, ctx.dt
+        v = s.velocity
+        travel = np.sqrt(np.einsum('ij,ij->i', v, v)) * dt
+        if self.gravity is not None:
+            sag = float(np.linalg.norm(self.gravity))
+            travel = travel + np.where(s.dynamic, 0.5 * sag * dt * dt, 0.0)
+        return travel
+
+    def _run_compiled(self, ctx: StepContext) -> None:
+        """Run the step in one compiled call (``swept_kernels.sweep``); book and record."""
+        s, dt = ctx.state, ctx.dt
+        n = len(s)
+        dynamic = s.dynamic
+        pair_i, pair_j = self._pairs.find(s.position, s.radius, s.velocity, s.inv_mass, dt,
+                                          extra=self._travel(ctx))
+        ctx.pair_i, ctx.pair_j = pair_i, pair_j
+        movable = dynamic[pair_i] | dynamic[pair_j]
+        a = np.ascontiguousarray(pair_i[movable], dtype=np.int64)
+        b = np.ascontiguousarray(pair_j[movable], dtype=np.int64)
+        min_speed = ctx.effects.threshold(dt)
+        d = ctx.dimensions
+        resting_pair = np.zeros(0, dtype=bool)
+        resting_wall = np.zeros((0, 2 * d), dtype=bool)
+        has_resting = self.gravity is not None
+        if has_resting:
+            resting_pair, walls_touch = self._in_contact(ctx, a, b)
+            if walls_touch is not None:
+                resting_wall = walls_touch
+            else:
+                resting_wall = np.zeros((n, 2 * d), dtype=bool)
+        walls = self.walls
+        low = np.full(3, -np.inf) if walls is None else np.asarray(walls.low, dtype=float)
+        high = np.full(3, np.inf) if walls is None else np.asarray(walls.high, dtype=float)
+        gravity = np.zeros(3) if self.gravity is None else self.gravity
+        own_e = s.restitution if s.restitution is not None else np.zeros(0)
+        own_mu = s.friction if s.friction is not None else np.zeros(0)
+        spin = s.angular_velocity if s.angular_velocity is not None else np.zeros((n, 3))
+        loss = np.zeros((len(KERNEL_EFFECTS), n))
+        totals = np.zeros(len(KERNEL_EFFECTS))
+        counts = np.zeros(4, dtype=np.int64)
+        self._workspace = workspace(n, a.size, d, self._workspace)
+        records, index = sweep(
+            s.position, s.velocity, spin, s.inv_mass, s.radius, dynamic, a, b,
+            own_e, s.restitution is not None, own_mu, s.friction is not None,
+            float(self.restitution), float(1.0 if walls is None else walls.restitution),
+            self.friction is not None, float(self.friction or 0.0), walls is not None,
+            low, high, d, gravity, self.gravity is not None, resting_pair, resting_wall,
+            has_resting, float(min_speed), STRIKE_FACTOR * min_speed, float(dt),
+            int(self.rounds), d == 2, ctx.impacts is not None, loss, totals, counts,
+            self._workspace)
+        # The effects the numpy rounds book: restitution when a pair was resolved,
+        # walls and friction when one hit.
+        booked = (counts[3] > 0, counts[1] > 0,
+                  self.friction is not None and counts[0] + counts[1] > 0)
+        for row, effect in enumerate(KERNEL_EFFECTS):
+            if not booked[row]:
+                continue
+            ctx.stats.add_dissipated(effect, float(totals[row]))
+            if ctx.losses is not None:
+                ctx.losses += loss[row]
+        ctx.stats.collisions += int(counts[0])
+        ctx.stats.wall_collisions += int(counts[1])
+        if ctx.impacts is not None and len(index):
+            ctx.impacts.record(ctx.time + records[:, 0], index[:, 0], index[:, 1],
+                               records[:, 1:4], records[:, 4:7], records[:, 7], records[:, 8],
+                               records[:, 9])
+
+    def _run_numpy(self, ctx: StepContext) -> None:
+        """Run the stage in numpy rounds: the reference the compiled step is tested against."""
         s, dt = ctx.state, ctx.dt
         n = len(s)
         x, v, dynamic = s.position, s.velocity, s.dynamic
