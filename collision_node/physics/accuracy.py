@@ -69,14 +69,14 @@ Settings
 
 Presets
 -------
-========== ====== ======== ===== ======= ========== ========== ============= ============ ==========
-preset     mode   substeps ccd   requery ordering   iterations collapse_time event_budget sleep_time
-========== ====== ======== ===== ======= ========== ========== ============= ============ ==========
-fast       step   1        no    --      sequential 8          (unused)      (unused)     0.5 s
-balanced   step   1        yes   no      sequential 32         (unused)      (unused)     0.5 s
-accurate   step   4        yes   yes     sequential 64         (unused)      (unused)     off
-exact      event  1        --    --      --         --         1e-5 s        10           --
-========== ====== ======== ===== ======= ========== ========== ============= ============ ==========
+======== ===== ======== === ======= ========== ========== ============= ============ ==========
+preset   mode  substeps ccd requery ordering   iterations collapse_time event_budget sleep_time
+======== ===== ======== === ======= ========== ========== ============= ============ ==========
+fast     step  1        no  --      sequential 8          (unused)      (unused)     0.5 s
+balanced step  1        yes no      sequential 32         (unused)      (unused)     0.5 s
+accurate step  4        yes yes     sequential 64         (unused)      (unused)     off
+exact    event 1        --  --      --         --         1e-5 s        10           --
+======== ===== ======== === ======= ========== ========== ============= ============ ==========
 
 Sleeping is on where a settled pile should cost little (``fast``,
 ``balanced``) and off where exactness matters (``accurate``: a sleeping

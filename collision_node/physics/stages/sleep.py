@@ -238,3 +238,23 @@ class SleepingPipeline(Pipeline):
 def asleep_count(state: ParticleState) -> int:
     """Return how many particles sleep (0 when the state has never slept)."""
     return 0 if state.asleep is None else int(np.count_nonzero(state.asleep))
+
+
+def sleepers_touching(state: ParticleState, rows: np.ndarray) -> np.ndarray:
+    """Return the sleeping particles in contact with particles ``rows`` (within the margin)."""
+    rows = np.asarray(rows, dtype=np.int64)
+    if state.asleep is None or not rows.size or not state.asleep.any():
+        return np.zeros(0, dtype=np.int64)
+    sleepers = np.flatnonzero(state.asleep)
+    reach = ((1.0 + CONTACT_MARGIN) * (state.radius[rows] + float(state.radius[sleepers].max()))
+             * (1.0 + 1e-9))
+    hits = cKDTree(state.position[sleepers]).query_ball_point(state.position[rows], reach)
+    counts = np.fromiter(map(len, hits), dtype=np.int64, count=len(hits))
+    if not counts.sum():
+        return np.zeros(0, dtype=np.int64)
+    a = np.repeat(rows, counts)
+    b = sleepers[np.concatenate([np.asarray(h, dtype=np.int64) for h in hits if h])]
+    gap = state.position[a] - state.position[b]
+    near = np.einsum('ij,ij->i', gap, gap) <= \
+        ((1.0 + CONTACT_MARGIN) * (state.radius[a] + state.radius[b])) ** 2
+    return np.unique(b[near])
