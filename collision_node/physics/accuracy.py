@@ -113,13 +113,13 @@ class AccuracySettings:
     collapse_time: float = 1e-5
     event_budget: int = 10
     # Seconds below the sleep speed before an island sleeps; None: never.
-    sleep_time: Optional[float] = None
+    sleep_time: Optional[float] = 0.5
 
 
 PRESETS: dict[str, AccuracySettings] = {
-    'fast': AccuracySettings(ccd=False, iterations=8, sleep_time=0.5),
-    'balanced': AccuracySettings(sleep_time=0.5),
-    'accurate': AccuracySettings(substeps=4, iterations=64, requery=True),
+    'fast': AccuracySettings(ccd=False, iterations=8),
+    'balanced': AccuracySettings(),
+    'accurate': AccuracySettings(substeps=4, iterations=64, requery=True, sleep_time=None),
     'exact': AccuracySettings(mode='event'),
 }
 DEFAULT_PRESET = 'balanced'
