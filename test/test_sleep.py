@@ -60,8 +60,11 @@ def test_settled_pile_falls_asleep_and_does_not_move(sleeping_pile):
 def test_sleep_off_is_bitwise_the_pipeline_without_it():
     """Until the first island sleeps, sleeping changes nothing; off adds no stage."""
     on, off = _pile('balanced'), _pile('balanced', sleep_time=None)
-    assert off.pipeline.names[0] != 'wake' and 'sleep' not in off.pipeline.names
-    assert on.pipeline.names == ['wake'] + off.pipeline.names + ['sleep']
+    assert on.pipeline.names == off.pipeline.names
+    lines = on.explain().splitlines()
+    assert lines[0].startswith('before 1, wake: ')
+    assert lines[-1].startswith(f'after {len(on.pipeline.names)}, sleep: ')
+    assert lines[1:-1] == off.explain().splitlines()
     for _ in range(120):
         on.step()
         off.step()
@@ -84,7 +87,7 @@ def test_explain_shows_sleep_only_when_it_can_act(accuracy, staged):
                              'particles': [{'position': [0.5, 0.5], 'radius': 0.1,
                                             'mass': 1.0}]}, 'test')
         text = World(scene).explain()
-        assert ('. wake:' in text and '. sleep:' in text) == wanted, text
+        assert (', wake:' in text and ', sleep:' in text) == wanted, text
 
 
 @pytest.mark.parametrize('value, message', [

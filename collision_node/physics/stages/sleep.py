@@ -215,24 +215,41 @@ class SleepStage(Stage):
 
 
 class SleepingPipeline(Pipeline):
-    """A pipeline framed by ``wake`` and ``sleep``: skips its middle when nobody is awake."""
+    """A pipeline framed by ``wake`` and ``sleep``: skips its middle when nobody is awake.
+
+    ``stages`` and ``names`` stay those of the step without sleeping (the
+    effects' stages, compared across presets); ``explain`` lists the two
+    sleep stages around them.
+    """
 
     def __init__(self, stages: list[Stage], gravity: np.ndarray, sleep_time: float,
                  note: str = '') -> None:
-        """Wrap ``stages`` (the step without sleeping) between the two sleep stages."""
-        shared = _Shared()
-        self.shared = shared
-        super().__init__([WakeStage(shared, gravity)] + stages
-                         + [SleepStage(shared, gravity, sleep_time)], note=note)
+        """Frame ``stages`` (the step without sleeping) with the two sleep stages."""
+        super().__init__(stages, note=note)
+        self.shared = _Shared()
+        self.wake = WakeStage(self.shared, gravity)
+        self.sleep = SleepStage(self.shared, gravity, sleep_time)
 
     def run(self, ctx: StepContext) -> None:
         """Run every stage, or only the two sleep stages when every particle sleeps."""
-        first, last = self.stages[0], self.stages[-1]
-        first.run(ctx)
+        self.wake.run(ctx)
         if self.shared.anyone_awake:
-            for stage in self.stages[1:-1]:
-                stage.run(ctx)
-        last.run(ctx)
+            super().run(ctx)
+        self.sleep.run(ctx)
+
+    def explain(self) -> str:
+        """Return the numbered stages, with ``wake`` before and ``sleep`` after them.
+
+        The two framing stages are on lines of their own, not numbered: the
+        numbered list stays the effects' stages, the same in every preset.
+        """
+        lines = [f'{k + 1}. {stage.name}: {stage.describe()}'
+                 for k, stage in enumerate(self.stages)]
+        lines.insert(0, f'before 1, {self.wake.name}: {self.wake.describe()}')
+        lines.append(f'after {len(self.stages)}, {self.sleep.name}: {self.sleep.describe()}')
+        if self.note:
+            lines.append(f'note: {self.note}')
+        return '\n'.join(lines)
 
 
 def asleep_count(state: ParticleState) -> int:
