@@ -256,6 +256,8 @@ def build_result(world: World, start: dict, wall_seconds: float) -> dict:
             'energy': {'start': start['energy'], 'end': world.energy()},
             'max_penetration': world.stats.max_penetration,
             'fallback_steps': world.stats.fallback_steps,
+            # Particles asleep at the end (sleeping islands, accuracy sleep_time).
+            'asleep': world.asleep_count,
             'wall_seconds': wall_seconds,
         },
     }
@@ -280,6 +282,9 @@ def print_summary(world: World, result: dict) -> None:
               f'balance error {balance_end["balance_error"]:.3g} J')
     print(f'momentum change: {d_momentum:.3g} kg m/s; '
           f'max penetration: {stats["max_penetration"]:.3g} m')
+    if stats['asleep']:
+        print(f'asleep at the end: {stats["asleep"]} of {len(world.state)} particles '
+              '(sleeping islands, accuracy sleep_time)')
     if stats['fallback_steps']:
         print(f'event mode: {stats["fallback_steps"]} of {world.steps} steps met resting '
               'contact under gravity or passed the event budget and were solved by the '

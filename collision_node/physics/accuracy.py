@@ -53,23 +53,40 @@ Settings
     or that meets resting contact under gravity, is rolled back and solved
     by the ``accurate`` step solver instead (see ``stages/event_driven.py``;
     counted as ``fallback_steps`` in the stats).
+``sleep_time``
+    Step mode under gravity: seconds an island (particles connected by
+    contacts; walls and static particles do not connect) must stay below
+    the sleep speed 2 |g| dt, in speed and in spin times radius, before it
+    falls asleep (``stages/sleep.py``). A sleeping particle keeps its
+    mass for energy and messages but is static inside a step (no motion,
+    no gravity, infinite mass in the solve) until an awake particle comes
+    within reach of its island, or a command touches it, and then its
+    whole island wakes. Falling asleep zeroes velocity and spin; the
+    kinetic energy removed is booked as ``sleep`` (at most a few
+    (|g| dt)^2 m per particle). ``null`` (or ``false``): never sleep, the
+    pipeline is exactly that of a scene without the setting. Unused
+    without gravity (nothing rests) and in event mode.
 
 Presets
 -------
-========== ====== ======== ===== ======= ========== ========== ============= ============
-preset     mode   substeps ccd   requery ordering   iterations collapse_time event_budget
-========== ====== ======== ===== ======= ========== ========== ============= ============
-fast       step   1        no    --      sequential 8          (unused)      (unused)
-balanced   step   1        yes   no      sequential 32         (unused)      (unused)
-accurate   step   4        yes   yes     sequential 64         (unused)      (unused)
-exact      event  1        --    --      --         --         1e-5 s        10
-========== ====== ======== ===== ======= ========== ========== ============= ============
+======== ===== ======== === ======= ========== ========== ============= ============ ==========
+preset   mode  substeps ccd requery ordering   iterations collapse_time event_budget sleep_time
+======== ===== ======== === ======= ========== ========== ============= ============ ==========
+fast     step  1        no  --      sequential 8          (unused)      (unused)     0.5 s
+balanced step  1        yes no      sequential 32         (unused)      (unused)     0.5 s
+accurate step  4        yes yes     sequential 64         (unused)      (unused)     off
+exact    event 1        --  --      --         --         1e-5 s        10           --
+======== ===== ======== === ======= ========== ========== ============= ============ ==========
+
+Sleeping is on where a settled pile should cost little (``fast``,
+``balanced``) and off where exactness matters (``accurate``: a sleeping
+particle ignores the last few mm/s of settling; ``exact``: event mode).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
-from typing import Any
+from typing import Any, Optional
 
 import numpy as np
 
@@ -95,12 +112,14 @@ class AccuracySettings:
     iterations: int = 32
     collapse_time: float = 1e-5
     event_budget: int = 10
+    # Seconds below the sleep speed before an island sleeps; None: never.
+    sleep_time: Optional[float] = 0.5
 
 
 PRESETS: dict[str, AccuracySettings] = {
     'fast': AccuracySettings(ccd=False, iterations=8),
     'balanced': AccuracySettings(),
-    'accurate': AccuracySettings(substeps=4, iterations=64, requery=True),
+    'accurate': AccuracySettings(substeps=4, iterations=64, requery=True, sleep_time=None),
     'exact': AccuracySettings(mode='event'),
 }
 DEFAULT_PRESET = 'balanced'
@@ -141,7 +160,22 @@ def parse_accuracy(value: Any, where: str) -> AccuracySettings:
     if 'collapse_time' in value:
         changes['collapse_time'] = number(value['collapse_time'], f'{where}.collapse_time',
                                           minimum=0.0, maximum=1.0)
+    if 'sleep_time' in value:
+        changes['sleep_time'] = parse_sleep_time(value['sleep_time'], f'{where}.sleep_time')
     return replace(base, **changes)
+
+
+# Longest sleep_time accepted, s (a larger value is almost surely a unit error).
+MAX_SLEEP_TIME = 1e6
+
+
+def parse_sleep_time(value: Any, where: str) -> Optional[float]:
+    """Return seconds (> 0) before an island sleeps, or None for ``null``/``false`` (never)."""
+    if value is None or value is False:
+        return None
+    if value is True:
+        fail(where, 'expected seconds (e.g. 0.5) or null/false to turn sleeping off, got true')
+    return number(value, where, minimum=0.0, exclusive_minimum=True, maximum=MAX_SLEEP_TIME)
 
 
 def parse_accuracy_text(text: str, effects: Any, where: str) -> AccuracySettings:

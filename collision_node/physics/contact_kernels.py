@@ -662,12 +662,16 @@ def _warm_up() -> None:
     pay_for_lift(position, start, v, inv_mass, dynamic, pi, pj, np.ones(2), np.zeros(2))
     from . import swept_kernels
     swept_kernels._warm_up()
+    from .sleep_kernels import warm_up as warm_up_sleep
+    warm_up_sleep()
 
 
 def _kernels() -> list:
     from .coloring import greedy_colors
+    from .sleep_kernels import kernels as sleep_kernels
     from .swept_kernels import sweep
-    return [solve_contacts, greedy_colors, find_overlaps, project_overlaps, pay_for_lift, sweep]
+    return [solve_contacts, greedy_colors, find_overlaps, project_overlaps,
+            pay_for_lift, sweep] + sleep_kernels()
 
 
 _PREPARED = False

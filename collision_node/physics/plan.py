@@ -19,6 +19,7 @@ from .stages.gravity import GravityStage
 from .stages.narrowphase import NarrowphaseStage
 from .stages.separation import SeparationStage
 from .stages.sequential_impulses import SequentialImpulseStage
+from .stages.sleep import SleepingPipeline
 from .stages.spin import SpinStage
 from .stages.swept_contacts import SweptContactStage
 from .stages.walls import WallStage
@@ -39,7 +40,22 @@ def needs_contact_solve(effects: Effects) -> bool:
 
 
 def build_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
-    """Assemble the stages a scene's effects and accuracy settings call for."""
+    """Assemble the stages a scene's effects and accuracy settings call for.
+
+    Sleeping (``accuracy.sleep_time``) frames a step-mode pipeline with the
+    ``wake`` and ``sleep`` stages only under gravity, the one effect that
+    makes particles rest; without it the setting costs nothing.
+    """
+    pipeline = _build(effects, accuracy)
+    if accuracy.mode == 'step' and accuracy.sleep_time is not None \
+            and effects.gravity is not None:
+        return SleepingPipeline(pipeline.stages, effects.gravity, accuracy.sleep_time,
+                                note=pipeline.note)
+    return pipeline
+
+
+def _build(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
+    """Assemble the stages of one step without sleeping."""
     if accuracy.mode == 'event':
         # Exact event-driven mode: one stage moves the world impact to impact.
         # Its fallback for steps it cannot do exactly is built here, by the plan,

@@ -32,6 +32,12 @@ class ParticleState:
     friction: Optional[np.ndarray] = None
     angular_velocity: Optional[np.ndarray] = None
     orientation: Optional[np.ndarray] = None
+    # Sleeping (``stages/sleep.py``; None until a pipeline with sleeping
+    # runs): which particles sleep, seconds each has stayed below the sleep
+    # speed, and the id naming a sleeping particle's island (-1 if awake).
+    asleep: Optional[np.ndarray] = None
+    still_time: Optional[np.ndarray] = None
+    island: Optional[np.ndarray] = None
 
     @classmethod
     def empty(cls) -> 'ParticleState':
@@ -74,13 +80,16 @@ class ParticleState:
 
         An optional array present on one side only is filled with its neutral
         value on the other side (NaN for per-particle coefficients, meaning
-        "use the scene's value"; zero spin; identity orientation).
+        "use the scene's value"; zero spin; identity orientation; awake).
         """
         neutral = {
             'restitution': lambda n: np.full(n, np.nan),
             'friction': lambda n: np.full(n, np.nan),
             'angular_velocity': lambda n: np.zeros((n, 3)),
             'orientation': lambda n: np.tile([0.0, 0.0, 0.0, 1.0], (n, 1)),
+            'asleep': lambda n: np.zeros(n, dtype=bool),
+            'still_time': lambda n: np.zeros(n),
+            'island': lambda n: np.full(n, -1, dtype=np.int64),
         }
         kwargs = {}
         for f in fields(self):

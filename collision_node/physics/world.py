@@ -18,6 +18,7 @@ from .effects import check_particles_for_effects
 from .impacts import ImpactLog
 from .particles import MAX_SPEED
 from .plan import build_pipeline
+from .stages.sleep import asleep_count, sleepers_touching, wake_islands
 from .step import StepContext, StepStats
 from .scene import Scene, parse_spawn
 from .state import ParticleState
@@ -168,6 +169,10 @@ class World:
         rows = self.rows(ids, f'{source}: ids')
         keep = np.ones(len(self.state), dtype=bool)
         keep[rows] = False
+        # What rested on a deleted particle must fall: its island, and the
+        # islands of sleeping particles touching it, wake.
+        touching = sleepers_touching(self.state, rows)
+        self.state = self.state.with_arrays(**self._woken(np.concatenate([rows, touching])))
         removed = self.state.subset(rows)
         self.energy_commanded -= self._mechanical(removed)
         self.state = self.state.subset(keep)
@@ -221,10 +226,28 @@ class World:
         if velocity is not None:
             arrays['velocity'] = self.state.velocity.copy()
             arrays['velocity'][row] = velocity
+        # A command wakes the particle's island (if it sleeps) and restarts
+        # its stillness timer.
+        arrays.update(self._woken(np.array([row])))
         # A new state object (not an in-place edit), so stages that cache the
         # last step's state (event mode) start afresh.
         self.state = self.state.with_arrays(**arrays)
         self.energy_commanded += self._mechanical(self.state.subset([row])) - before
+
+    def _woken(self, rows: np.ndarray) -> dict:
+        """Return new sleeping arrays in which the islands of ``rows`` are awake (timers 0)."""
+        s = self.state
+        if s.asleep is None:
+            return {}
+        arrays = {'asleep': s.asleep.copy(), 'still_time': s.still_time.copy(),
+                  'island': s.island.copy()}
+        wake_islands(s.with_arrays(**arrays), rows, reset=True)
+        return arrays
+
+    @property
+    def asleep_count(self) -> int:
+        """Particles sleeping now (see ``stages/sleep.py``)."""
+        return asleep_count(self.state)
 
     def explain(self) -> str:
         """Return the step pipeline, one numbered stage per line."""

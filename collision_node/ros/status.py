@@ -26,6 +26,8 @@ def status_report(world: World, scene_name: str, rates: tuple[float, float], *,
         'collisions': stats.collisions,
         'wall_collisions': stats.wall_collisions,
         'fallback_steps': stats.fallback_steps,
+        # Particles asleep now (sleeping islands, accuracy sleep_time).
+        'asleep': world.asleep_count,
         # True while particles/collisions has a subscriber and impacts are recorded.
         'recording_impacts': world.impact_log is not None,
         'collisions_per_second': collision_rate,
