@@ -68,9 +68,17 @@ _INF = np.inf
 
 
 @njit(cache=True, inline='always')
-def _before(t_a, s_a, t_b, s_b):
-    """Say whether heap key (t_a, s_a) comes before (t_b, s_b)."""
-    return t_a < t_b or (t_a == t_b and s_a < s_b)
+def _entry_before(h_time, h_int, k, t, seq):
+    """Say whether heap entry ``k`` comes before key (t, seq); reads its seq only on a tie."""
+    tk = h_time[k]
+    return tk < t or (tk == t and h_int[k, H_SEQ] < seq)
+
+
+@njit(cache=True, inline='always')
+def _entries_before(h_time, h_int, a, b):
+    """Say whether heap entry ``a`` comes before entry ``b``."""
+    ta, tb = h_time[a], h_time[b]
+    return ta < tb or (ta == tb and h_int[a, H_SEQ] < h_int[b, H_SEQ])
 
 
 @njit(cache=True)
@@ -81,7 +89,8 @@ def heap_push(h_time, h_int, meta, when, kind, p, q, sp, sq):
     meta[SEQ] = seq + 1
     while k > 0:
         parent = (k - 1) >> 1
-        if not _before(when, seq, h_time[parent], h_int[parent, H_SEQ]):
+        tp = h_time[parent]
+        if not (when < tp or (when == tp and seq < h_int[parent, H_SEQ])):
             break
         h_time[k] = h_time[parent]
         for c in range(6):
@@ -101,10 +110,9 @@ def _sift_down(h_time, h_int, size, k, t, row):
         c = 2 * k + 1
         if c >= size:
             break
-        if c + 1 < size and _before(h_time[c + 1], h_int[c + 1, H_SEQ], h_time[c],
-                                    h_int[c, H_SEQ]):
+        if c + 1 < size and _entries_before(h_time, h_int, c + 1, c):
             c += 1
-        if not _before(h_time[c], h_int[c, H_SEQ], t, seq):
+        if not _entry_before(h_time, h_int, c, t, seq):
             break
         h_time[k] = h_time[c]
         for j in range(6):
@@ -277,8 +285,8 @@ def _remove(p, cell, table, head, nxt, prv, occupancy):
 # -- prediction ---------------------------------------------------------------
 
 @njit(cache=True, error_model='numpy')
-def _predict(p, when, pos, vel, radius, ref_time, count, gravity, half_g, low, high,
-             params, flags, offsets, cell, table, head, nxt, h_time, h_int, meta):
+def _predict(p, when, pos, vel, radius, ref_time, count, own_next, gravity, half_g, low, high,
+             params, flags, cell, table, head, nxt, h_time, h_int, meta):
     """Invalidate particle p's events and push its new ones (p is at ``when``).
 
     As ``EventDrivenStage._predict``: its wall event, its cell crossing, then
@@ -308,22 +316,51 @@ def _predict(p, when, pos, vel, radius, ref_time, count, gravity, half_g, low, h
                 best_wall, wall_col = w_low, 2 * axis
             if w_high < best_wall:
                 best_wall, wall_col = w_high, 2 * axis + 1
-    if wall_col >= 0:
-        heap_push(h_time, h_int, meta, when + best_wall, WALL, p, wall_col, stamp, 0)
-    if best_cell < _INF:
-        heap_push(h_time, h_int, meta, when + best_cell, CELL, p, cell_col, stamp, 0)
-    for o in range(offsets.shape[0]):
-        cx = cell[p, 0] + offsets[o, 0]
-        cy = cell[p, 1] + offsets[o, 1]
-        cz = cell[p, 2] + offsets[o, 2]
-        q = head[_slot(cx, cy, cz, table)]
-        while q >= 0:
-            if q != p and cell[q, 0] == cx and cell[q, 1] == cy and cell[q, 2] == cz:
-                _advance(pos, vel, ref_time, gravity, half_g, q, when)
-                delay = pair_time(pos, vel, radius, p, q)
-                if math.isfinite(delay):
-                    heap_push(h_time, h_int, meta, when + delay, PAIR, p, q, stamp, count[q])
-            q = nxt[q]
+    # p's own next event (a wall, or the face of its cell) re-predicts p, so
+    # any event of p keyed after it will be found stale when popped: only the
+    # earlier of the two is pushed (the wall on a tie: it was pushed first),
+    # and only pair events before it, and before the partner's own event.
+    # Not pushing them changes nothing but the heap's size.
+    # (Compared as the times pushed: when + delay may round two delays together.)
+    wall_at, cell_at = when + best_wall, when + best_cell
+    own = _INF
+    if wall_col >= 0 and wall_at <= cell_at:
+        own = wall_at
+        heap_push(h_time, h_int, meta, own, WALL, p, wall_col, stamp, 0)
+    elif best_cell < _INF:
+        own = cell_at
+        heap_push(h_time, h_int, meta, own, CELL, p, cell_col, stamp, 0)
+    own_next[p] = own
+    # The 3^d cells around p in itertools.product order (first axis slowest),
+    # their slots found by wrapping p's slot coordinates (one modulo per axis).
+    span_x = 3 if dims > 0 else 1
+    span_y = 3 if dims > 1 else 1
+    span_z = 3 if dims > 2 else 1
+    mx, my, mz = table[0], table[1], table[2]
+    px, py, pz = cell[p, 0], cell[p, 1], cell[p, 2]
+    sx0, sy0, sz0 = px % mx, py % my, pz % mz
+    for a in range(span_x):
+        dx = a - 1 if span_x == 3 else 0
+        sx = sx0 + dx
+        sx = mx - 1 if sx < 0 else (0 if sx >= mx else sx)
+        for b in range(span_y):
+            dy = b - 1 if span_y == 3 else 0
+            sy = sy0 + dy
+            sy = my - 1 if sy < 0 else (0 if sy >= my else sy)
+            row = (sx * my + sy) * mz
+            for c in range(span_z):
+                dz = c - 1 if span_z == 3 else 0
+                sz = sz0 + dz
+                sz = mz - 1 if sz < 0 else (0 if sz >= mz else sz)
+                cx, cy, cz = px + dx, py + dy, pz + dz
+                q = head[row + sz]
+                while q >= 0:
+                    if q != p and cell[q, 0] == cx and cell[q, 1] == cy and cell[q, 2] == cz:
+                        _advance(pos, vel, ref_time, gravity, half_g, q, when)
+                        at = when + pair_time(pos, vel, radius, p, q)
+                        if at < own and at < own_next[q]:
+                            heap_push(h_time, h_int, meta, at, PAIR, p, q, stamp, count[q])
+                    q = nxt[q]
 
 
 # -- events -------------------------------------------------------------------
@@ -374,8 +411,8 @@ def _record(rec_f, rec_ij, meta, when, i, j, px, py, pz, nx, ny, nz, impulse, ap
 
 @njit(cache=True, error_model='numpy')
 def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, low, high, params,
-               flags, offsets, cell, table, head, nxt, prv, occupancy, ref_time, last_impact,
-               count, h_time, h_int, meta, totals, losses, rec_f, rec_ij):
+               flags, cell, table, head, nxt, prv, occupancy, ref_time, last_impact,
+               count, own_next, h_time, h_int, meta, totals, losses, rec_f, rec_ij):
     """Process every event up to ``end``, then bring every particle to ``end``.
 
     The rules of ``EventDrivenStage`` (see its module doc): returns
@@ -455,8 +492,8 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, low, hig
             last_impact[q] = when
             for k in (p, q):
                 if inv_mass[k] > 0.0:      # a static particle's events stay valid
-                    _predict(k, when, pos, vel, radius, ref_time, count, gravity, half_g,
-                             low, high, params, flags, offsets, cell, table, head, nxt,
+                    _predict(k, when, pos, vel, radius, ref_time, count, own_next, gravity, half_g,
+                             low, high, params, flags, cell, table, head, nxt,
                              h_time, h_int, meta)
         elif kind == WALL:
             _advance(pos, vel, ref_time, gravity, half_g, p, when)
@@ -495,24 +532,24 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, low, hig
                     _record(rec_f, rec_ij, meta, when, p, -1, point[0], point[1], point[2],
                             normal[0], normal[1], normal[2], magnitude, approach)
                 last_impact[p] = when
-            _predict(p, when, pos, vel, radius, ref_time, count, gravity, half_g, low, high,
-                     params, flags, offsets, cell, table, head, nxt, h_time, h_int, meta)
+            _predict(p, when, pos, vel, radius, ref_time, count, own_next, gravity, half_g, low,
+                     high, params, flags, cell, table, head, nxt, h_time, h_int, meta)
         else:
             _advance(pos, vel, ref_time, gravity, half_g, p, when)
             axis, side = q // 2, q % 2
             _remove(p, cell, table, head, nxt, prv, occupancy)
             cell[p, axis] += 1 if side else -1
             _insert(p, cell, table, head, nxt, prv, occupancy, meta)
-            _predict(p, when, pos, vel, radius, ref_time, count, gravity, half_g, low, high,
-                     params, flags, offsets, cell, table, head, nxt, h_time, h_int, meta)
+            _predict(p, when, pos, vel, radius, ref_time, count, own_next, gravity, half_g, low,
+                     high, params, flags, cell, table, head, nxt, h_time, h_int, meta)
     for p in range(pos.shape[0]):
         _advance(pos, vel, ref_time, gravity, half_g, p, end)
     return DONE, h_time, h_int, rec_f, rec_ij
 
 
 @njit(cache=True, error_model='numpy')
-def build_events(when, pos, vel, inv_mass, radius, gravity, low, high, params, flags, offsets,
-                 cell, table, head, nxt, prv, occupancy, ref_time, count, h_time, h_int,
+def build_events(when, pos, vel, inv_mass, radius, gravity, low, high, params, flags, cell,
+                 table, head, nxt, prv, occupancy, ref_time, count, own_next, h_time, h_int,
                  meta):
     """Fill the grid and predict every dynamic particle's events, in index order.
 
@@ -529,6 +566,6 @@ def build_events(when, pos, vel, inv_mass, radius, gravity, low, high, params, f
         if not inv_mass[p] > 0.0:
             continue
         h_time, h_int = _reserve(h_time, h_int, meta, count, 2 + neighbours * meta[MAX_OCC])
-        _predict(p, when, pos, vel, radius, ref_time, count, gravity, half_g, low, high,
-                 params, flags, offsets, cell, table, head, nxt, h_time, h_int, meta)
+        _predict(p, when, pos, vel, radius, ref_time, count, own_next, gravity, half_g, low, high,
+                 params, flags, cell, table, head, nxt, h_time, h_int, meta)
     return h_time, h_int

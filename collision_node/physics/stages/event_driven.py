@@ -58,7 +58,6 @@ falling particle is not a straight line
 
 from __future__ import annotations
 
-import itertools
 from typing import Callable, Optional
 
 import numpy as np
@@ -80,6 +79,8 @@ MAX_FALLBACK_HOLD = 63
 # Slots of the cell table per particle, at most (an open scene that spreads
 # out shares slots between far cells; the neighbour query tells them apart).
 SLOTS_PER_PARTICLE = 8
+# Heap entries per particle at which stale ones are first dropped.
+COMPACT_PER_PARTICLE = 4
 
 
 class EventDrivenStage(Stage):
@@ -130,9 +131,7 @@ class EventDrivenStage(Stage):
         self.ref_time = np.full(n, self.time)
         self.last_impact = np.full(n, -np.inf)
         self.count = np.zeros(n, dtype=np.int64)
-        offsets = np.zeros((3 ** dimensions, 3), dtype=np.int64)
-        offsets[:, :dimensions] = list(itertools.product((-1, 0, 1), repeat=dimensions))
-        self.offsets = offsets
+        self.own_next = np.full(n, np.inf)     # each particle's next wall or cell event
         self.cell_size = self._choose_cell_size(state, dimensions) if n else 1.0
         self.cell = np.zeros((n, 3), dtype=np.int64)
         self.cell[:, :dimensions] = np.floor(state.position[:, :dimensions] / self.cell_size)
@@ -146,7 +145,8 @@ class EventDrivenStage(Stage):
         self.heap_time = np.empty(capacity)
         self.heap_int = np.empty((capacity, 6), dtype=np.int64)
         self.meta = np.zeros(ek.META_SIZE, dtype=np.int64)
-        self.meta[ek.COMPACT_AT] = capacity
+        # Stale entries are dropped once the heap holds a few per particle.
+        self.meta[ek.COMPACT_AT] = max(1024, COMPACT_PER_PARTICLE * n)
         if self.walls is not None:
             self.low = np.asarray(self.walls.low, float)
             self.high = np.asarray(self.walls.high, float)
@@ -161,9 +161,9 @@ class EventDrivenStage(Stage):
                                own is not None, 0, 0], dtype=np.int64)
         self.heap_time, self.heap_int = ek.build_events(
             self.time, state.position, state.velocity, state.inv_mass, state.radius,
-            self.gravity, self.low, self.high, self.params, self.flags, self.offsets,
-            self.cell, self.table, self.head, self.next, self.previous, self.occupancy,
-            self.ref_time, self.count, self.heap_time, self.heap_int, self.meta)
+            self.gravity, self.low, self.high, self.params, self.flags, self.cell, self.table,
+            self.head, self.next, self.previous, self.occupancy, self.ref_time, self.count,
+            self.own_next, self.heap_time, self.heap_int, self.meta)
 
     def _choose_cell_size(self, state: ParticleState, dimensions: int) -> float:
         """Cells at least one contact diameter wide, ``particles_per_cell`` each."""
@@ -237,9 +237,9 @@ class EventDrivenStage(Stage):
         rows = 64 if record else 0
         status, self.heap_time, self.heap_int, rec_f, rec_ij = ek.run_events(
             end, budget, state.position, state.velocity, state.inv_mass, state.radius,
-            self.own_e, self.gravity, self.low, self.high, self.params, self.flags,
-            self.offsets, self.cell, self.table, self.head, self.next, self.previous,
-            self.occupancy, self.ref_time, self.last_impact, self.count, self.heap_time,
+            self.own_e, self.gravity, self.low, self.high, self.params, self.flags, self.cell,
+            self.table, self.head, self.next, self.previous, self.occupancy, self.ref_time,
+            self.last_impact, self.count, self.own_next, self.heap_time,
             self.heap_int, meta, totals, losses, np.empty((rows, ek.RECORD_COLUMNS)),
             np.empty((rows, 2), dtype=np.int64))
         if status != ek.DONE:
