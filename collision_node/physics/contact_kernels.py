@@ -660,11 +660,15 @@ def _warm_up() -> None:
                      found_penetration, 2, True, True, low, high, 3, np.zeros(1, dtype=np.int64),
                      np.full(1, -10.0), np.ones(1))
     pay_for_lift(position, start, v, inv_mass, dynamic, pi, pj, np.ones(2), np.zeros(2))
+    from . import event_kernels     # the exact preset's event loop
+    event_kernels.warm_up()
 
 
 def _kernels() -> list:
     from .coloring import greedy_colors
-    return [solve_contacts, greedy_colors, find_overlaps, project_overlaps, pay_for_lift]
+    from .event_kernels import build_events, run_events
+    return [solve_contacts, greedy_colors, find_overlaps, project_overlaps, pay_for_lift,
+            build_events, run_events]
 
 
 _PREPARED = False

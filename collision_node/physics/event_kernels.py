@@ -569,3 +569,28 @@ def build_events(when, pos, vel, inv_mass, radius, gravity, low, high, params, f
         _predict(p, when, pos, vel, radius, ref_time, count, own_next, gravity, half_g, low, high,
                  params, flags, cell, table, head, nxt, h_time, h_int, meta)
     return h_time, h_int
+
+
+def warm_up() -> None:
+    """Run both kernels once on two particles meeting head on between walls."""
+    pos = np.array([[-0.5, 0.0, 0.0], [0.5, 0.0, 0.0]])
+    vel = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    inv_mass, radius = np.ones(2), np.full(2, 0.25)
+    gravity, low, high = np.zeros(3), np.full(3, -1.0), np.full(3, 1.0)
+    params = np.array([1e-5, 0.0, 1.0, 1.0, 0.5])
+    flags = np.array([3, 0, 1, 1, 1, 1], dtype=np.int64)
+    cell = np.floor(pos / 0.5).astype(np.int64)
+    table = np.full(3, 7, dtype=np.int64)
+    head, occupancy = np.full(343, -1, dtype=np.int64), np.zeros(343, dtype=np.int64)
+    nxt, prv = np.full(2, -1, dtype=np.int64), np.full(2, -1, dtype=np.int64)
+    ref_time, count, own_next = np.zeros(2), np.zeros(2, dtype=np.int64), np.full(2, np.inf)
+    meta = np.zeros(META_SIZE, dtype=np.int64)
+    meta[COMPACT_AT] = 1024
+    h_time, h_int = build_events(0.0, pos, vel, inv_mass, radius, gravity, low, high, params,
+                                 flags, cell, table, head, nxt, prv, occupancy, ref_time,
+                                 count, own_next, np.empty(64), np.empty((64, 6), np.int64),
+                                 meta)
+    run_events(1.0, 1000, pos, vel, inv_mass, radius, np.full(2, np.nan), gravity, low, high,
+               params, flags, cell, table, head, nxt, prv, occupancy, ref_time,
+               np.full(2, -np.inf), count, own_next, h_time, h_int, meta, np.zeros(2),
+               np.zeros(2), np.empty((4, RECORD_COLUMNS)), np.empty((4, 2), dtype=np.int64))

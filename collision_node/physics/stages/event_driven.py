@@ -72,8 +72,9 @@ from ..state import ParticleState
 PAIR, WALL, CELL = ek.PAIR, ek.WALL, ek.CELL
 
 # Cells hold about this many particles: fewer means more cell crossings,
-# more means longer candidate lists per prediction.
-PARTICLES_PER_CELL = 8.0
+# more means longer candidate lists per prediction. About one was the
+# fastest of 8, 2, 1 and 0.5 on the compiled loop (docs/performance.md).
+PARTICLES_PER_CELL = 1.0
 # Steps in a row that go straight to the step solver after fallbacks, at most.
 MAX_FALLBACK_HOLD = 63
 # Slots of the cell table per particle, at most (an open scene that spreads
