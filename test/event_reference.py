@@ -17,10 +17,12 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from collision_node.physics.accuracy import (AccuracySettings, check_event_mode, check_event_particles,
-                        EVENT_FALLBACK, MIN_EVENT_BUDGET, PRESETS)
-from collision_node.physics.contact_law import (apply_pair_impulses, apply_wall_impulses, pair_coefficient,
-                           record_pairs, record_walls, thresholded, wall_coefficient)
+from collision_node.physics.accuracy import (AccuracySettings, check_event_mode,
+                                             check_event_particles, EVENT_FALLBACK,
+                                             MIN_EVENT_BUDGET, PRESETS)
+from collision_node.physics.contact_law import (apply_pair_impulses, apply_wall_impulses,
+                                                pair_coefficient, record_pairs, record_walls,
+                                                thresholded, wall_coefficient)
 from collision_node.physics.effects import Effects
 from collision_node.physics.paths import entering_time
 from collision_node.physics.step import Pipeline, Stage, StepContext
@@ -296,6 +298,9 @@ class PythonEventStage(Stage):
             self._rebuild(state, ctx.dimensions)
         budget = max(MIN_EVENT_BUDGET, self.event_budget * len(state))
         saved = (state.position.copy(), state.velocity.copy(), ctx.stats.copy(), self.events)
+        # The impacts of an attempt that is rolled back are taken out of the log
+        # again (the compiled stage never records them; this loop used to).
+        logged = None if ctx.impacts is None else len(ctx.impacts._chunks)
         end = self.time + ctx.dt
         heap, count = self.heap, self.count
         taken = 0
@@ -318,6 +323,8 @@ class PythonEventStage(Stage):
                 # Roll the step back and let the step solver take it.
                 state.position[:], state.velocity[:] = saved[0], saved[1]
                 ctx.stats.restore(saved[2])
+                if logged is not None:
+                    del ctx.impacts._chunks[logged:]
                 self.events = saved[3]
                 self._fallback_streak += 1
                 self._hold = min(2 ** self._fallback_streak - 1, MAX_FALLBACK_HOLD)
