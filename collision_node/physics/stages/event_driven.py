@@ -236,6 +236,10 @@ class EventDrivenStage(Stage):
         totals = np.array([dissipated.get('restitution', 0.0), dissipated.get('walls', 0.0)])
         losses = np.zeros(n if ctx.losses is not None else 0)
         rows = 64 if record else 0
+        own = state.restitution         # read each step, as the law reads it at each impact
+        self.flags[ek.F_OWN_E] = own is not None
+        if own is not None:
+            self.own_e = np.asarray(own, float)
         status, self.heap_time, self.heap_int, rec_f, rec_ij = ek.run_events(
             end, budget, state.position, state.velocity, state.inv_mass, state.radius,
             self.own_e, self.gravity, self.low, self.high, self.params, self.flags, self.cell,
