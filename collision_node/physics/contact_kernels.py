@@ -664,14 +664,17 @@ def _warm_up() -> None:
     swept_kernels._warm_up()
     from .sleep_kernels import warm_up as warm_up_sleep
     warm_up_sleep()
+    from . import event_kernels     # the exact preset's event loop
+    event_kernels.warm_up()
 
 
 def _kernels() -> list:
     from .coloring import greedy_colors
+    from .event_kernels import build_events, run_events
     from .sleep_kernels import kernels as sleep_kernels
     from .swept_kernels import sweep
     return [solve_contacts, greedy_colors, find_overlaps, project_overlaps,
-            pay_for_lift, sweep] + sleep_kernels()
+            pay_for_lift, sweep, build_events, run_events] + sleep_kernels()
 
 
 _PREPARED = False

@@ -20,12 +20,15 @@ Bookkeeping: each particle stores its state at its own reference time; a
 heap holds predicted events, each stamped with the change counters of its
 particles, so an event whose particle changed since is skipped when popped
 (lazy invalidation). Neighbours come from a hash grid of cells at least one
-contact diameter wide (and wide enough for about eight particles per cell,
-so cell crossings stay rare); crossing a cell is itself an event. An event
-touches one or two particles: it re-predicts only them, vectorised against
-the particles of the 3^d neighbouring cells. At the end of each step every
-particle is brought to the step's end time (one vectorised update) so the
-world's state is a snapshot like in step mode.
+contact diameter wide (``PARTICLES_PER_CELL`` on average); crossing a cell
+is itself an event. An event touches one or two particles: it re-predicts
+only them, against the particles of the 3^d neighbouring cells. At the end
+of each step every particle is brought to the step's end time so the
+world's state is a snapshot like in step mode. The loop itself (grid, heap,
+predictions, impacts) runs compiled, one call per step
+(``collision_node.physics.event_kernels``); this stage owns its arrays
+between steps and the rules around it (rebuild, rollback, fallback,
+bookings, the impact log).
 
 Inelastic collapse (infinitely many impacts in finite time when e < 1)
 without gravity is stopped with the TC model: an impact within
@@ -55,35 +58,30 @@ falling particle is not a straight line
 
 from __future__ import annotations
 
-import heapq
-import itertools
 from typing import Callable, Optional
 
 import numpy as np
 
+from .. import event_kernels as ek
 from ..accuracy import (AccuracySettings, check_event_mode, check_event_particles,
                         EVENT_FALLBACK, MIN_EVENT_BUDGET, PRESETS)
-from ..contact_law import (apply_pair_impulses, apply_wall_impulses, pair_coefficient,
-                           record_pairs, record_walls, thresholded, wall_coefficient)
 from ..effects import Effects
-from ..paths import entering_time
 from ..step import Pipeline, Stage, StepContext
 from ..state import ParticleState
-from .narrowphase import line_of_action
-from .swept_contacts import pair_impact_times
 
-PAIR, WALL, CELL = 0, 1, 2
-
-
-class NotExactable(Exception):
-    """An event the TC model would have to alter under gravity: resting contact."""
-
+PAIR, WALL, CELL = ek.PAIR, ek.WALL, ek.CELL
 
 # Cells hold about this many particles: fewer means more cell crossings,
-# more means longer candidate lists per prediction.
-PARTICLES_PER_CELL = 8.0
+# more means longer candidate lists per prediction. About one was the
+# fastest of 8, 2, 1 and 0.5 on the compiled loop (docs/performance.md).
+PARTICLES_PER_CELL = 1.0
 # Steps in a row that go straight to the step solver after fallbacks, at most.
 MAX_FALLBACK_HOLD = 63
+# Slots of the cell table per particle, at most (an open scene that spreads
+# out shares slots between far cells; the neighbour query tells them apart).
+SLOTS_PER_PARTICLE = 8
+# Heap entries per particle at which stale ones are first dropped.
+COMPACT_PER_PARTICLE = 4
 
 
 class EventDrivenStage(Stage):
@@ -92,7 +90,8 @@ class EventDrivenStage(Stage):
     name = 'event_driven'
 
     def __init__(self, effects: Effects, accuracy: AccuracySettings,
-                 fallback: Callable[[], Pipeline]) -> None:
+                 fallback: Callable[[], Pipeline],
+                 particles_per_cell: float = PARTICLES_PER_CELL) -> None:
         """Keep the effects it simulates; refuse any it cannot do exactly.
 
         ``fallback`` builds the step-solver pipeline for the steps this stage
@@ -107,6 +106,7 @@ class EventDrivenStage(Stage):
         self.event_budget = accuracy.event_budget
         self.accuracy, self.effects = accuracy, effects
         self.under_gravity = bool(np.any(self.gravity != 0.0))
+        self.particles_per_cell = float(particles_per_cell)
         # A declared restitution threshold is part of the contact law. The
         # default one under gravity (2 |g| dt) is the step solvers' device for
         # resting contact, which this mode hands to them: exact impacts keep e.
@@ -132,29 +132,42 @@ class EventDrivenStage(Stage):
         self.ref_time = np.full(n, self.time)
         self.last_impact = np.full(n, -np.inf)
         self.count = np.zeros(n, dtype=np.int64)
-        self.heap: list = []
-        self.seq = itertools.count()
-        offsets = np.zeros((3 ** dimensions, 3), dtype=np.int64)
-        offsets[:, :dimensions] = list(itertools.product((-1, 0, 1), repeat=dimensions))
-        self.offsets = offsets
-        if n == 0:
-            self.cell_size = 1.0
-            self.cell = np.zeros((0, 3), dtype=np.int64)
-            self.grid: dict = {}
-            return
-        self.cell_size = self._choose_cell_size(state, dimensions)
+        self.own_next = np.full(n, np.inf)     # each particle's next wall or cell event
+        self.cell_size = self._choose_cell_size(state, dimensions) if n else 1.0
         self.cell = np.zeros((n, 3), dtype=np.int64)
         self.cell[:, :dimensions] = np.floor(state.position[:, :dimensions] / self.cell_size)
-        keys, inverse = np.unique(self.cell, axis=0, return_inverse=True)
-        order = np.argsort(inverse.ravel(), kind='stable')
-        bounds = np.searchsorted(inverse.ravel()[order], np.arange(keys.shape[0] + 1))
-        self.grid = {tuple(keys[k].tolist()): set(order[bounds[k]:bounds[k + 1]].tolist())
-                     for k in range(keys.shape[0])}
-        for p in np.flatnonzero(state.dynamic):
-            self._predict(int(p), self.time)
+        self.table = self._table_shape(n, dimensions)
+        slots = int(np.prod(self.table))
+        self.head = np.full(slots, -1, dtype=np.int64)
+        self.occupancy = np.zeros(slots, dtype=np.int64)
+        self.next = np.full(n, -1, dtype=np.int64)
+        self.previous = np.full(n, -1, dtype=np.int64)
+        capacity = max(64, 16 * n)
+        self.heap_time = np.empty(capacity)
+        self.heap_int = np.empty((capacity, 6), dtype=np.int64)
+        self.meta = np.zeros(ek.META_SIZE, dtype=np.int64)
+        # Stale entries are dropped once the heap holds a few per particle.
+        self.meta[ek.COMPACT_AT] = max(1024, COMPACT_PER_PARTICLE * n)
+        if self.walls is not None:
+            self.low = np.asarray(self.walls.low, float)
+            self.high = np.asarray(self.walls.high, float)
+        else:
+            self.low, self.high = np.full(3, -np.inf), np.full(3, np.inf)
+        own = state.restitution
+        self.own_e = np.full(n, np.nan) if own is None else np.asarray(own, float)
+        self.params = np.array([self.collapse_time, self.threshold, self.restitution,
+                                1.0 if self.walls is None else self.walls.restitution,
+                                self.cell_size])
+        self.flags = np.array([dimensions, self.under_gravity, self.walls is not None,
+                               own is not None, 0, 0], dtype=np.int64)
+        self.heap_time, self.heap_int = ek.build_events(
+            self.time, state.position, state.velocity, state.inv_mass, state.radius,
+            self.gravity, self.low, self.high, self.params, self.flags, self.cell, self.table,
+            self.head, self.next, self.previous, self.occupancy, self.ref_time, self.count,
+            self.own_next, self.heap_time, self.heap_int, self.meta)
 
     def _choose_cell_size(self, state: ParticleState, dimensions: int) -> float:
-        """Cells at least one contact diameter wide, about 8 particles each."""
+        """Cells at least one contact diameter wide, ``particles_per_cell`` each."""
         diameter = 2.0 * float(state.radius.max()) * (1.0 + 1e-9)
         pos = state.position[:, :dimensions]
         extent = pos.max(axis=0) - pos.min(axis=0) + diameter
@@ -164,161 +177,34 @@ class EventDrivenStage(Stage):
             between = (self.walls.high - self.walls.low)[:dimensions]
             extent = np.where(np.isfinite(between), between, extent)
         volume = float(np.prod(np.maximum(extent, diameter)))
-        spacing = (PARTICLES_PER_CELL * volume / len(state)) ** (1.0 / dimensions)
+        spacing = (self.particles_per_cell * volume / len(state)) ** (1.0 / dimensions)
         return max(diameter, spacing)
+
+    def _table_shape(self, n: int, dimensions: int) -> np.ndarray:
+        """Slots per axis: the cells the particles (and a box) span, plus one each side."""
+        table = np.ones(3, dtype=np.int64)
+        if n:
+            low = self.cell.min(axis=0)[:dimensions].astype(float)
+            high = self.cell.max(axis=0)[:dimensions].astype(float)
+            if self.walls is not None:
+                # A box bounds where particles go: cover it whole.
+                lo = np.floor(self.walls.low[:dimensions] / self.cell_size)
+                hi = np.floor(self.walls.high[:dimensions] / self.cell_size)
+                low = np.where(np.isfinite(lo), np.minimum(low, lo), low)
+                high = np.where(np.isfinite(hi), np.maximum(high, hi), high)
+            span = np.minimum(high - low + 3.0, 2.0 ** 20)
+            table[:dimensions] = np.maximum(span, 3.0).astype(np.int64)
+        limit = max(4096, SLOTS_PER_PARTICLE * n)
+        while int(np.prod(table)) > limit:
+            axis = int(np.argmax(table))
+            table[axis] = max(3, table[axis] // 2)
+        return table
 
     def _still_valid(self, state: ParticleState) -> bool:
         """Return whether ``state`` is the one left by the last step, untouched."""
         return (state is self._state and len(state) == self.count.size
                 and np.array_equal(state.position, self._position_after)
                 and np.array_equal(state.velocity, self._velocity_after))
-
-    # -- motion ------------------------------------------------------------
-
-    def _advance(self, index, when: float) -> None:
-        """Bring particle(s) ``index`` to time ``when`` on their exact paths."""
-        s = self._state
-        tau = np.asarray(when - self.ref_time[index], float)[..., None]
-        s.position[index] += s.velocity[index] * tau + 0.5 * self.gravity * tau * tau
-        s.velocity[index] += self.gravity * tau
-        self.ref_time[index] = when
-
-    def _sync_all(self, when: float) -> None:
-        """Bring every particle to time ``when`` (one vectorised update)."""
-        self._advance(slice(None), when)
-
-    def _neighbours(self, p: int) -> np.ndarray:
-        """Return the particles in the 3^d cells around particle ``p``'s cell."""
-        found: list[int] = []
-        get = self.grid.get
-        for key in (self.offsets + self.cell[p]).tolist():
-            members = get(tuple(key))
-            if members:
-                found.extend(members)
-        out = np.fromiter(found, dtype=np.int64, count=len(found))
-        return out[out != p]
-
-    def _boundary_times(self, p: int) -> tuple[np.ndarray, np.ndarray]:
-        """Return per-column (low x, high x, ...) times to reach walls and cell faces."""
-        s = self._state
-        d = self.dims
-        x, v, g = s.position[p, :d], s.velocity[p, :d], self.gravity[:d]
-        low_face = self.cell[p, :d] * self.cell_size
-        gaps = [x - low_face, (low_face + self.cell_size) - x]
-        if self.walls is not None:
-            r = s.radius[p]
-            gaps += [x - (self.walls.low[:d] + r), (self.walls.high[:d] - r) - x]
-        k = len(gaps) // 2
-        times = entering_time(np.concatenate(gaps), np.concatenate([v, -v] * k),
-                              np.concatenate([g, -g] * k))
-        # Columns in (low x, high x, low y, ...) order, cells then walls.
-        cells = np.empty(2 * d)
-        cells[0::2], cells[1::2] = times[:d], times[d:2 * d]
-        walls = np.full(2 * d, np.inf)
-        if k == 2:
-            walls[0::2], walls[1::2] = times[2 * d:3 * d], times[3 * d:]
-        return walls, cells
-
-    def _predict(self, p: int, when: float) -> None:
-        """Invalidate particle ``p``'s events and push its new ones (p is at ``when``)."""
-        self.count[p] += 1
-        stamp = int(self.count[p])
-        walls, cells = self._boundary_times(p)
-        push = heapq.heappush
-        if np.isfinite(walls).any():
-            col = int(np.argmin(walls))
-            push(self.heap, (when + float(walls[col]), next(self.seq), WALL, p, col, stamp, 0))
-        col = int(np.argmin(cells))
-        if np.isfinite(cells[col]):
-            push(self.heap, (when + float(cells[col]), next(self.seq), CELL, p, col, stamp, 0))
-        others = self._neighbours(p)
-        if not others.size:
-            return
-        self._advance(others, when)
-        s = self._state
-        a = np.full(others.size, p, dtype=np.int64)
-        times = pair_impact_times(s.position, s.velocity, s.radius, np.zeros(s.radius.size),
-                                  a, others)
-        for k in np.flatnonzero(np.isfinite(times)):
-            q = int(others[k])
-            push(self.heap, (when + float(times[k]), next(self.seq), PAIR, p, q, stamp,
-                             int(self.count[q])))
-
-    # -- events ------------------------------------------------------------
-
-    def _in_collapse(self, when: float, *particles: int) -> bool:
-        """Return whether any particle had an impact within t_c before ``when``."""
-        return any(when - self.last_impact[p] < self.collapse_time for p in particles)
-
-    def _pair_event(self, ctx: StepContext, when: float, p: int, q: int) -> None:
-        """Apply the impulse of particles p and q at their contact."""
-        s = self._state
-        both = np.array([p, q])
-        self._advance(both, when)
-        a, b = both[:1], both[1:]
-        normal, _ = line_of_action(s.position[a] - s.position[b],
-                                   s.velocity[a] - s.velocity[b])
-        approach = -float((s.velocity[p] - s.velocity[q]) @ normal[0])
-        e = thresholded(pair_coefficient(s.restitution, a, b, self.restitution),
-                        np.array([approach]), self.threshold)
-        e = float(np.asarray(e).reshape(-1)[0])
-        if self._in_collapse(when, p, q) and e < 1.0:
-            if self.under_gravity:
-                raise NotExactable
-            e = 1.0
-        result = apply_pair_impulses(s.velocity, s.inv_mass, a, b, normal, e)
-        if result.hit[0]:
-            ctx.stats.collisions += 1
-            ctx.book('restitution', result.removed, a, b)
-            record_pairs(ctx.impacts, when, s.position, s.radius, a, b, normal,
-                         result.magnitude, 0.0, result.approach)
-        self.last_impact[both] = when
-        for k in (p, q):
-            if s.inv_mass[k] > 0.0:  # a static particle's events stay valid
-                self._predict(k, when)
-
-    def _wall_event(self, ctx: StepContext, when: float, p: int, col: int) -> None:
-        """Reflect particle p's normal velocity at a wall (TC model near collapse)."""
-        s = self._state
-        self._advance(p, when)
-        axis, high = divmod(col, 2)
-        toward = 1.0 if high else -1.0      # direction of the wall along the axis
-        speed_in = toward * s.velocity[p, axis]
-        pushed_in = toward * self.gravity[axis]
-        if speed_in > 0.0 or (speed_in == 0.0 and pushed_in > 0.0):
-            index = np.array([p])
-            e = thresholded(wall_coefficient(s.restitution, index, self.walls.restitution),
-                            np.array([speed_in]), self.threshold)
-            e = float(np.asarray(e).reshape(-1)[0])
-            if self._in_collapse(when, p):
-                resting = pushed_in > 0.0 and speed_in < 0.5 * pushed_in * self.collapse_time
-                if self.under_gravity and (e < 1.0 or resting):
-                    raise NotExactable      # resting on the wall: the step solver takes it
-                e = 1.0
-            plane = float(self.walls.high[axis] if high else self.walls.low[axis])
-            _, magnitude, approach, removed = apply_wall_impulses(
-                s.velocity, s.inv_mass, index, axis, -toward, e, tolerance=-np.inf)
-            ctx.book('walls', removed, index)
-            s.position[p, axis] = plane - toward * s.radius[p]  # exact contact, no drift
-            ctx.stats.wall_collisions += 1
-            record_walls(ctx.impacts, when, s.position, index, axis, plane, -toward,
-                         magnitude, 0.0, approach)
-            self.last_impact[p] = when
-        self._predict(p, when)
-
-    def _cell_event(self, when: float, p: int, col: int) -> None:
-        """Move particle p into the next cell and predict against its new neighbours."""
-        self._advance(p, when)
-        axis, high = divmod(col, 2)
-        old = tuple(self.cell[p].tolist())
-        self.cell[p, axis] += 1 if high else -1
-        new = tuple(self.cell[p].tolist())
-        members = self.grid[old]
-        members.discard(p)
-        if not members:
-            del self.grid[old]
-        self.grid.setdefault(new, set()).add(p)
-        self._predict(p, when)
 
     # -- the stage ---------------------------------------------------------
 
@@ -336,37 +222,56 @@ class EventDrivenStage(Stage):
         state = ctx.state
         if not self._still_valid(state):
             self._rebuild(state, ctx.dimensions)
-        budget = max(MIN_EVENT_BUDGET, self.event_budget * len(state))
-        saved = (state.position.copy(), state.velocity.copy(), ctx.stats.copy(), self.events)
+        n = len(state)
+        budget = max(MIN_EVENT_BUDGET, self.event_budget * n)
+        saved = (state.position.copy(), state.velocity.copy())
         end = self.time + ctx.dt
-        heap, count = self.heap, self.count
-        taken = 0
-        while heap and heap[0][0] <= end:
-            when, _, kind, p, q, stamp_p, stamp_q = heapq.heappop(heap)
-            if count[p] != stamp_p or (kind == PAIR and count[q] != stamp_q):
-                continue
-            taken += 1
-            self.events += 1
-            try:
-                if taken > budget:
-                    raise NotExactable
-                if kind == PAIR:
-                    self._pair_event(ctx, when, p, q)
-                elif kind == WALL:
-                    self._wall_event(ctx, when, p, q)
-                else:
-                    self._cell_event(when, p, q)
-            except NotExactable:
-                # Roll the step back and let the step solver take it.
-                state.position[:], state.velocity[:] = saved[0], saved[1]
-                ctx.stats.restore(saved[2])
-                self.events = saved[3]
-                self._fallback_streak += 1
-                self._hold = min(2 ** self._fallback_streak - 1, MAX_FALLBACK_HOLD)
-                self._fallback_step(ctx)
-                return
+        record = ctx.impacts is not None
+        self.flags[ek.F_RECORD] = record
+        self.flags[ek.F_LOSSES] = ctx.losses is not None
+        meta = self.meta
+        meta[[ek.RECORDED, ek.COLLISIONS, ek.WALL_COLLISIONS, ek.EVENTS, ek.BOOKED_PAIRS,
+              ek.BOOKED_WALLS]] = 0
+        dissipated = ctx.stats.dissipated
+        totals = np.array([dissipated.get('restitution', 0.0), dissipated.get('walls', 0.0)])
+        losses = np.zeros(n if ctx.losses is not None else 0)
+        rows = 64 if record else 0
+        own = state.restitution         # read each step, as the law reads it at each impact
+        self.flags[ek.F_OWN_E] = own is not None
+        if own is not None:
+            self.own_e = np.asarray(own, float)
+        status, self.heap_time, self.heap_int, rec_f, rec_ij = ek.run_events(
+            end, budget, state.position, state.velocity, state.inv_mass, state.radius,
+            self.own_e, self.gravity, self.low, self.high, self.params, self.flags, self.cell,
+            self.table, self.head, self.next, self.previous, self.occupancy, self.ref_time,
+            self.last_impact, self.count, self.own_next, self.heap_time,
+            self.heap_int, meta, totals, losses, np.empty((rows, ek.RECORD_COLUMNS)),
+            np.empty((rows, 2), dtype=np.int64))
+        if status != ek.DONE:
+            # Roll the step back and let the step solver take it.
+            state.position[:], state.velocity[:] = saved
+            self._fallback_streak += 1
+            self._hold = min(2 ** self._fallback_streak - 1, MAX_FALLBACK_HOLD)
+            self._fallback_step(ctx)
+            return
         self._fallback_streak = 0
-        self._sync_all(end)
+        self.events += int(meta[ek.EVENTS])
+        ctx.stats.collisions += int(meta[ek.COLLISIONS])
+        ctx.stats.wall_collisions += int(meta[ek.WALL_COLLISIONS])
+        # The totals were summed impact after impact, as bookings one by one would.
+        if meta[ek.BOOKED_PAIRS]:
+            dissipated['restitution'] = float(totals[0])
+        if meta[ek.BOOKED_WALLS]:
+            dissipated['walls'] = float(totals[1])
+        if ctx.losses is not None:
+            ctx.losses += losses
+        if record and meta[ek.RECORDED]:
+            k = int(meta[ek.RECORDED])
+            rows_f, ij = rec_f[:k], rec_ij[:k]
+            ctx.impacts.record(rows_f[:, ek.R_TIME], ij[:, 0], ij[:, 1],
+                               rows_f[:, ek.R_POINT:ek.R_POINT + 3],
+                               rows_f[:, ek.R_NORMAL:ek.R_NORMAL + 3],
+                               rows_f[:, ek.R_IMPULSE], 0.0, rows_f[:, ek.R_APPROACH])
         self.time = end
         self._position_after = state.position.copy()
         self._velocity_after = state.velocity.copy()
