@@ -27,6 +27,16 @@ impulses. What the solve adds to the law:
   once per solve: its summed normal and tangential impulse and the speed
   it closed at before the solve.
 
+Resting contact is solved with accumulated impulses (kernel backend,
+under a restitution threshold): each contact closing slower than the
+threshold accumulates its normal impulse (clamped >= 0, target separating
+speed 0) and its tangential one (inside the Coulomb cone of the
+accumulated normal impulse); a contact that opens gets its resting impulse
+taken back. The impulses are kept per contact in ``ContactCache`` (by
+stable particle ids) and applied first in the next step where the contact
+persists and is not a new impact (warm starting), so a resting pile needs
+few sweeps. Impact impulses are the law's, unchanged and never cached.
+
 Two backends apply the same law. ``kernel`` (the default) runs the whole
 solve in one compiled call (``contact_kernels.solve_contacts``) that
 visits contacts one at a time in the broadphase's sorted pair order, and
@@ -446,15 +456,15 @@ class SequentialImpulseStage(Stage):
             self.cache.clear()
             acc, acc_t = np.zeros(m), np.zeros((m, 3))
             w_acc, w_acc_t = np.zeros(k), np.zeros((k, 3))
-        sweeps = solve_contacts(velocity, angular, np.ascontiguousarray(state.inv_mass, dtype=float),
-                       np.ascontiguousarray(state.radius, dtype=float),
-                       np.ascontiguousarray(state.dynamic, dtype=np.bool_), i, j, normal,
-                       rest, mu_k, order, w_start, w_index, w_axis, w_inward, w_rest, w_mu,
-                       threshold > 0.0, float(threshold), float(tolerance), STRIKE_FACTOR,
-                       int(self.iterations), friction, planar, shock_order, i_lower,
-                       SHOCK_PASSES, hit, summed_normal, summed_tangential, w_hit, w_normal,
-                       w_tangential, w_approach, loss, totals, accumulate, acc, acc_t, w_acc,
-                       w_acc_t)
+        sweeps = solve_contacts(
+            velocity, angular, np.ascontiguousarray(state.inv_mass, dtype=float),
+            np.ascontiguousarray(state.radius, dtype=float),
+            np.ascontiguousarray(state.dynamic, dtype=np.bool_), i, j, normal,
+            rest, mu_k, order, w_start, w_index, w_axis, w_inward, w_rest, w_mu,
+            threshold > 0.0, float(threshold), float(tolerance), STRIKE_FACTOR,
+            int(self.iterations), friction, planar, shock_order, i_lower,
+            SHOCK_PASSES, hit, summed_normal, summed_tangential, w_hit, w_normal,
+            w_tangential, w_approach, loss, totals, accumulate, acc, acc_t, w_acc, w_acc_t)
         self.sweeps += int(sweeps)
         self.solves += 1
         self.last_sweeps = int(sweeps)
@@ -601,4 +611,7 @@ class SequentialImpulseStage(Stage):
                      '(|J_t| <= mu j, I = 2/5 m r^2)')
         if self.gravity is not None:
             text += '; e = 0 below the restitution threshold; shock passes for resting contact'
+        if self.warm_start and self.backend == 'kernel':
+            text += ('; resting impulses accumulated (clamped) and warm-started from the '
+                     'previous step')
         return text
