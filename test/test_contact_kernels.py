@@ -118,6 +118,9 @@ def test_kernel_solve_equals_vectorised_reference_on_a_pile(preset):
     reference, kernel = copy.deepcopy(base), copy.deepcopy(base)
     solver_of(reference).backend = 'numpy'
     solver_of(kernel).visit = 'colours'
+    # The reference states the law without accumulated impulses (warm starting
+    # is the kernel's): compare the law itself.
+    solver_of(kernel).warm_start = False
     assert len(base.state) == 240
     assert_same_run(reference, kernel, 10)
 
@@ -129,6 +132,9 @@ def test_overflow_pairs_are_solved_one_by_one_with_friction(monkeypatch):
     reference, kernel = copy.deepcopy(base), copy.deepcopy(base)
     solver_of(reference).backend = 'numpy'
     solver_of(kernel).visit = 'colours'
+    # The reference states the law without accumulated impulses (warm starting
+    # is the kernel's): compare the law itself.
+    solver_of(kernel).warm_start = False
     assert_same_run(reference, kernel, 5)
     assert reference.stats.dissipated['friction'] > base.stats.dissipated['friction']
 

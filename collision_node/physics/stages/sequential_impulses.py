@@ -27,6 +27,16 @@ impulses. What the solve adds to the law:
   once per solve: its summed normal and tangential impulse and the speed
   it closed at before the solve.
 
+Resting contact is solved with accumulated impulses (kernel backend,
+under a restitution threshold): each contact closing slower than the
+threshold accumulates its normal impulse (clamped >= 0, target separating
+speed 0) and its tangential one (inside the Coulomb cone of the
+accumulated normal impulse); a contact that opens gets its resting impulse
+taken back. The impulses are kept per contact in ``ContactCache`` (by
+stable particle ids) and applied first in the next step where the contact
+persists and is not a new impact (warm starting), so a resting pile needs
+few sweeps. Impact impulses are the law's, unchanged and never cached.
+
 Two backends apply the same law. ``kernel`` (the default) runs the whole
 solve in one compiled call (``contact_kernels.solve_contacts``) that
 visits contacts one at a time in the broadphase's sorted pair order, and
@@ -161,6 +171,93 @@ class WallContacts:
                      self.tangential[pushed], np.maximum(self.approach[pushed], 0.0))
 
 
+class ContactCache:
+    """Accumulated resting impulses of the last solve, keyed by stable particle ids.
+
+    Pairs are keyed by (lower id, higher id), wall contacts by (id, plane:
+    axis * 2 + 1 for a plane facing +axis); tangential impulses are stored as
+    the impulse on the lower id. Ids never change or get reused (``World``:
+    a spawn takes new ids, a delete leaves a gap), so a contact between
+    particles that survive a delete or spawn finds its entry, and one with a
+    deleted particle is simply never looked up again. A world reset builds a
+    new pipeline and with it an empty cache.
+    """
+
+    # Keys are lower * stride + higher in int64: ids up to 2**31 are safe.
+    MAX_ID = 2 ** 31 - 1
+
+    def __init__(self) -> None:
+        """Start empty."""
+        self.clear()
+
+    def clear(self) -> None:
+        """Forget every contact."""
+        none = np.zeros(0, dtype=np.int64)
+        self.lo, self.hi = none, none
+        self.normal, self.tangential = np.zeros(0), np.zeros((0, 3))
+        self.wall_key = none
+        self.wall_normal, self.wall_tangential = np.zeros(0), np.zeros((0, 3))
+
+    def __len__(self) -> int:
+        """Return the number of contacts held (pairs and wall contacts)."""
+        return int(self.lo.size + self.wall_key.size)
+
+    @classmethod
+    def _pair_keys(cls, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        return lo * (cls.MAX_ID + 1) + hi
+
+    def lookup(self, ids: np.ndarray, i: np.ndarray, j: np.ndarray, w_index: np.ndarray,
+               w_code: np.ndarray) -> tuple:
+        """Return the cached (normal, tangential) impulses of pairs and wall contacts.
+
+        Contacts not in the cache get zeros; tangential impulses come back as
+        the impulse on i.
+        """
+        m, k = i.size, w_index.size
+        acc, acc_t = np.zeros(m), np.zeros((m, 3))
+        w_acc, w_acc_t = np.zeros(k), np.zeros((k, 3))
+        if ids.size and int(ids.max()) > self.MAX_ID:
+            self.clear()
+        if self.lo.size and m:
+            a, b = ids[i], ids[j]
+            swapped = a > b
+            found, where = _find(self._pair_keys(self.lo, self.hi),
+                                 self._pair_keys(np.minimum(a, b), np.maximum(a, b)))
+            acc[found] = self.normal[where]
+            sign = np.where(swapped[found], -1.0, 1.0)
+            acc_t[found] = self.tangential[where] * sign[:, None]
+        if self.wall_key.size and k:
+            found, where = _find(self.wall_key, ids[w_index] * 8 + w_code)
+            w_acc[found] = self.wall_normal[where]
+            w_acc_t[found] = self.wall_tangential[where]
+        return acc, acc_t, w_acc, w_acc_t
+
+    def store(self, ids: np.ndarray, i: np.ndarray, j: np.ndarray, acc: np.ndarray,
+              acc_t: np.ndarray, w_index: np.ndarray, w_code: np.ndarray, w_acc: np.ndarray,
+              w_acc_t: np.ndarray) -> None:
+        """Keep this solve's contacts that hold a resting impulse (replacing the last)."""
+        if ids.size and int(ids.max()) > self.MAX_ID:
+            self.clear()
+            return
+        keep = acc > 0.0
+        a, b = ids[i[keep]], ids[j[keep]]
+        self.lo, self.hi = np.minimum(a, b), np.maximum(a, b)
+        self.normal = acc[keep]
+        self.tangential = acc_t[keep] * np.where(a > b, -1.0, 1.0)[:, None]
+        keep = w_acc > 0.0
+        self.wall_key = ids[w_index[keep]] * 8 + w_code[keep]
+        self.wall_normal, self.wall_tangential = w_acc[keep], w_acc_t[keep]
+
+
+def _find(table: np.ndarray, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return (positions of ``keys`` found in ``table``, their rows in ``table``)."""
+    order = np.argsort(table, kind='stable')
+    sorted_table = table[order]
+    at = np.minimum(np.searchsorted(sorted_table, keys), sorted_table.size - 1)
+    found = np.flatnonzero(sorted_table[at] == keys)
+    return found, order[at[found]]
+
+
 class SequentialImpulseStage(Stage):
     """Resolve approaching contacts with restitution, colour by colour."""
 
@@ -187,6 +284,12 @@ class SequentialImpulseStage(Stage):
             raise ValueError(f'backend must be one of {BACKENDS} and visit one of {VISITS}, '
                              f'got {backend!r}, {visit!r}')
         self.backend, self.visit = backend, visit
+        # Accumulated resting impulses, warm-started from the previous step
+        # where contacts persist (kernel backend, under a restitution threshold).
+        self.warm_start = True
+        self.cache = ContactCache()
+        # Sweeps run, summed over the solves, and in the last solve (kernel).
+        self.sweeps = self.solves = self.last_sweeps = 0
 
     def run(self, ctx: StepContext) -> None:
         """Apply the law's impulses in place, count the contacts hit, book and record them."""
@@ -221,6 +324,8 @@ class SequentialImpulseStage(Stage):
         if self.backend == 'kernel':
             self._run_kernel(ctx, restitution, mu, threshold, tolerance, planar, shock)
             return
+        # The reference states the law without accumulated impulses.
+        self.cache.clear()
         struck = impact = None
         if threshold > 0.0:
             struck = np.zeros(len(state), dtype=bool)
@@ -342,14 +447,29 @@ class SequentialImpulseStage(Stage):
         w_normal, w_tangential, w_approach = np.zeros(k), np.zeros(k), np.zeros(k)
         loss = np.zeros((len(EFFECTS), n))
         totals = np.zeros(len(EFFECTS))
-        solve_contacts(velocity, angular, np.ascontiguousarray(state.inv_mass, dtype=float),
-                       np.ascontiguousarray(state.radius, dtype=float),
-                       np.ascontiguousarray(state.dynamic, dtype=np.bool_), i, j, normal,
-                       rest, mu_k, order, w_start, w_index, w_axis, w_inward, w_rest, w_mu,
-                       threshold > 0.0, float(threshold), float(tolerance), STRIKE_FACTOR,
-                       int(self.iterations), friction, planar, shock_order, i_lower,
-                       SHOCK_PASSES, hit, summed_normal, summed_tangential, w_hit, w_normal,
-                       w_tangential, w_approach, loss, totals)
+        accumulate = self.warm_start and threshold > 0.0
+        ids = state.ids
+        w_code = w_axis * 2 + (w_inward > 0.0)
+        if accumulate:
+            acc, acc_t, w_acc, w_acc_t = self.cache.lookup(ids, i, j, w_index, w_code)
+        else:
+            self.cache.clear()
+            acc, acc_t = np.zeros(m), np.zeros((m, 3))
+            w_acc, w_acc_t = np.zeros(k), np.zeros((k, 3))
+        sweeps = solve_contacts(
+            velocity, angular, np.ascontiguousarray(state.inv_mass, dtype=float),
+            np.ascontiguousarray(state.radius, dtype=float),
+            np.ascontiguousarray(state.dynamic, dtype=np.bool_), i, j, normal,
+            rest, mu_k, order, w_start, w_index, w_axis, w_inward, w_rest, w_mu,
+            threshold > 0.0, float(threshold), float(tolerance), STRIKE_FACTOR,
+            int(self.iterations), friction, planar, shock_order, i_lower,
+            SHOCK_PASSES, hit, summed_normal, summed_tangential, w_hit, w_normal,
+            w_tangential, w_approach, loss, totals, accumulate, acc, acc_t, w_acc, w_acc_t)
+        self.sweeps += int(sweeps)
+        self.solves += 1
+        self.last_sweeps = int(sweeps)
+        if accumulate:
+            self.cache.store(ids, i, j, acc, acc_t, w_index, w_code, w_acc, w_acc_t)
         if velocity is not state.velocity:
             state.velocity[...] = velocity
         if spin is not None and angular is not spin:
@@ -491,4 +611,7 @@ class SequentialImpulseStage(Stage):
                      '(|J_t| <= mu j, I = 2/5 m r^2)')
         if self.gravity is not None:
             text += '; e = 0 below the restitution threshold; shock passes for resting contact'
+        if self.warm_start and self.backend == 'kernel':
+            text += ('; resting impulses accumulated (clamped) and warm-started from the '
+                     'previous step')
         return text
