@@ -190,3 +190,19 @@ def test_first_start_says_it_compiles_and_a_cached_start_says_nothing(tmp_path):
                             text=True, timeout=300)
     assert second.returncode == 0 and second.stderr == ''
     assert float(second.stdout) < float(first.stdout)
+
+
+def test_the_cache_folder_follows_every_physics_source(tmp_path):
+    # numba checks a cached kernel against its own file only; a kernel calling
+    # the law in another module must not load stale code when that module changes.
+    import shutil
+    from collision_node.physics import contact_kernels as k
+    copy = tmp_path / 'physics'
+    shutil.copytree(os.path.dirname(k.__file__), copy,
+                    ignore=shutil.ignore_patterns('__pycache__'))
+    before = k.sources_digest(str(copy))
+    assert before == k.sources_digest(os.path.dirname(k.__file__))
+    assert os.path.basename(k._CACHE_DIR) == f'numba-{before}'
+    law = copy / 'contact_law.py'
+    law.write_text(law.read_text() + '\n# changed\n')
+    assert k.sources_digest(str(copy)) != before

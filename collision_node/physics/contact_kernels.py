@@ -11,40 +11,64 @@ shock passes) inside one compiled call; ``test/test_contact_kernels.py``
 runs the vectorised law and these kernels on the same contacts and asserts
 identical velocities and bookings.
 
-The kernels are compiled on first use and cached (``cache=True``): in the
-package's ``__pycache__`` when it is writable, else under the user's cache
-(``~/.cache/collision_node/numba``, or ``$XDG_CACHE_HOME``). ``prepare``
-compiles (or loads) them up front and says how long that took.
+The kernels are compiled on first use and cached (``cache=True``) in a
+folder named by a digest of the physics sources (see ``_cache_directory``).
+``prepare`` compiles (or loads) them up front and says how long that took.
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 import time
 from typing import Callable, Optional
 
+import numba.core.config as _numba_config
 import numpy as np
 
 
-def _cache_directory() -> Optional[str]:
-    """Return a cache directory for numba if the package's own is not writable."""
-    if os.environ.get('NUMBA_CACHE_DIR'):
-        return None
+def sources_digest(here: Optional[str] = None) -> str:
+    """Return a short digest of every physics module's source (under ``here``).
+
+    numba checks a cached kernel against its own file only, not against the
+    compiled functions it calls from other modules (``swept_kernels`` calls
+    the law in this module): a change there would load stale machine code.
+    Keying the cache directory on all the physics sources makes any change
+    compile afresh instead.
+    """
+    here = here or os.path.dirname(os.path.abspath(__file__))
+    digest = hashlib.sha256()
+    for folder, _dirs, files in sorted(os.walk(here)):
+        for name in sorted(files):
+            if name.endswith('.py'):
+                with open(os.path.join(folder, name), 'rb') as source:
+                    digest.update(name.encode() + b'\0' + source.read())
+    return digest.hexdigest()[:16]
+
+
+def _cache_directory() -> str:
+    """Return numba's cache directory for this version of the physics sources.
+
+    Under ``NUMBA_CACHE_DIR`` if set, else the package's ``__pycache__``
+    when writable, else the user's cache (``$XDG_CACHE_HOME`` or
+    ``~/.cache``)/collision_node; each in a folder named by the digest.
+    """
     here = os.path.dirname(os.path.abspath(__file__))
+    folder = f'numba-{sources_digest()}'
+    if os.environ.get('NUMBA_CACHE_DIR'):
+        return os.path.join(os.environ['NUMBA_CACHE_DIR'], 'collision_node', folder)
     pycache = os.path.join(here, '__pycache__')
     target = pycache if os.path.isdir(pycache) else here
     if os.access(target, os.W_OK):
-        return None
+        return os.path.join(pycache, folder)
     base = os.environ.get('XDG_CACHE_HOME') or os.path.join(os.path.expanduser('~'), '.cache')
-    return os.path.join(base, 'collision_node', 'numba')
+    return os.path.join(base, 'collision_node', folder)
 
 
 _CACHE_DIR = _cache_directory()
-if _CACHE_DIR is not None:
-    # Before the first compile: numba reads it when a dispatcher finds its cache.
-    import numba.core.config as _numba_config
-    _numba_config.CACHE_DIR = _CACHE_DIR
+# Before the first compile: numba reads it when a dispatcher finds its cache.
+_numba_config.CACHE_DIR = _CACHE_DIR
 
 from numba import njit  # noqa: E402 (after the cache directory is chosen)
 
@@ -1027,8 +1051,7 @@ def prepare(say: Optional[Callable[[str], None]] = None) -> float:
         return 0.0
     compiling = not all(_cached(kernel) for kernel in _kernels())
     if compiling and say is not None:
-        where = (os.environ.get('NUMBA_CACHE_DIR') or _CACHE_DIR
-                 or 'the package __pycache__')
+        where = _CACHE_DIR
         say(f'compiling the contact kernels with numba (first start only; cached in {where})')
     start = time.perf_counter()
     _warm_up()
@@ -1042,7 +1065,7 @@ def prepare(say: Optional[Callable[[str], None]] = None) -> float:
 def _cached(dispatcher) -> bool:
     """Say whether ``dispatcher`` has a cache index on disk (loading, not compiling)."""
     try:
-        cache = dispatcher._cache
-        return os.path.exists(cache._cache_file._index_path)
-    except AttributeError:    # another numba: assume a compile, say so
+        # An index of another source version loads as empty: that is a compile too.
+        return bool(dispatcher._cache._cache_file._load_index())
+    except (AttributeError, OSError, EOFError):    # another numba: assume a compile
         return False
