@@ -660,11 +660,16 @@ def _warm_up() -> None:
                      found_penetration, 2, True, True, low, high, 3, np.zeros(1, dtype=np.int64),
                      np.full(1, -10.0), np.ones(1))
     pay_for_lift(position, start, v, inv_mass, dynamic, pi, pj, np.ones(2), np.zeros(2))
+    from . import grid_kernels, wall_kernels
+    grid_kernels.warm_up()
+    wall_kernels.warm_up()
 
 
 def _kernels() -> list:
+    from . import grid_kernels, wall_kernels
     from .coloring import greedy_colors
-    return [solve_contacts, greedy_colors, find_overlaps, project_overlaps, pay_for_lift]
+    return [solve_contacts, greedy_colors, find_overlaps, project_overlaps, pay_for_lift,
+            *grid_kernels.kernels(), *wall_kernels.kernels()]
 
 
 _PREPARED = False

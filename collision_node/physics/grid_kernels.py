@@ -49,6 +49,12 @@ SCAN_SLACK = 1e-6
 MAX_CELLS_PER_AXIS = 2.0 ** 40
 # Multipliers of the cell hash (large odd constants: neighbouring cells
 # land in unrelated buckets).
+# Cell width in the class's largest reach: 2 scans 3 cells per axis, 1 scans
+# 5 smaller ones (a box closer to the sphere searched: fewer candidates).
+CELL_REACHES = 2.0
+# A class whose occupied box has at most this many cells per particle (plus
+# a few) gets a dense table: no hashing, rows of cells read in one range.
+DENSE_CELLS_PER_ITEM = 16.0
 _H1, _H2, _H3 = 0x9E3779B97F4A7C15 - (1 << 64), 0xC2B2AE3D27D4EB4F - (1 << 64), 0x165667B19E3779F9
 
 
@@ -61,6 +67,7 @@ class Grid(NamedTuple):
     class_start: np.ndarray     # (classes + 1,) each class's slice of the items
     low: np.ndarray             # (classes, 3) lowest occupied cell index per axis
     high: np.ndarray            # (classes, 3) highest occupied cell index per axis
+    dense: np.ndarray           # (classes,) one bucket per cell (else hashed cells)
     table_start: np.ndarray     # (classes + 1,) each class's slice of ``bucket``
     bucket: np.ndarray          # bucket b's items are bucket[b] .. bucket[b + 1] - 1
     item: np.ndarray            # particle index of each item
@@ -76,12 +83,21 @@ def _hash(cx, cy, cz, mask):
     return h & mask
 
 
+@njit(cache=True, inline='always')
+def _dense_bucket(cx, cy, cz, lx, ly, lz, nx, ny):
+    """Return the bucket of cell (cx, cy, cz) in a dense table (x fastest)."""
+    return ((cz - lz) * ny + (cy - ly)) * nx + (cx - lx)
+
+
 @njit(cache=True)
 def build_grid(position, reach, order, class_start):
-    """Build every class's hashed grid; see ``Grid`` for the returned arrays.
+    """Build every class's grid; see ``Grid`` for the returned arrays.
 
     ``order`` lists the particles class by class (``class_start`` slices);
-    within a class the items are sorted by bucket, in ``order``'s order.
+    within a class the items are sorted by bucket, in ``order``'s order. A
+    class whose occupied box has at most DENSE_CELLS_PER_ITEM cells per
+    particle gets a dense table (one bucket per cell, rows of cells along
+    x contiguous), any other a hashed one.
     """
     n = position.shape[0]
     classes = class_start.size - 1
@@ -100,26 +116,16 @@ def build_grid(position, reach, order, class_start):
     cell, class_reach = np.empty(classes), np.empty(classes)
     low = np.empty((classes, 3), dtype=np.int64)
     high = np.empty((classes, 3), dtype=np.int64)
+    dense = np.zeros(classes, dtype=np.bool_)
     table_start = np.zeros(classes + 1, dtype=np.int64)
+    own_cell = np.empty((n, 3), dtype=np.int64)
     for k in range(classes):
         largest = 0.0
         for m in range(class_start[k], class_start[k + 1]):
             largest = max(largest, reach[order[m]])
         class_reach[k] = largest
-        width = max(2.0 * largest, extent / MAX_CELLS_PER_AXIS)
+        width = max(CELL_REACHES * largest, extent / MAX_CELLS_PER_AXIS)
         cell[k] = width if width > 0.0 else 1.0
-        size = 2
-        while size < 2 * (class_start[k + 1] - class_start[k]):
-            size *= 2
-        table_start[k + 1] = table_start[k] + size + 1
-    bucket = np.zeros(table_start[classes], dtype=np.int64)
-    item = np.empty(n, dtype=np.int64)
-    item_cell = np.empty((n, 3), dtype=np.int64)
-    item_position = np.empty((n, 3))
-    own_cell = np.empty((n, 3), dtype=np.int64)
-    own_bucket = np.empty(n, dtype=np.int64)
-    for k in range(classes):
-        base, mask = table_start[k], table_start[k + 1] - table_start[k] - 2
         for d in range(3):
             low[k, d], high[k, d] = np.iinfo(np.int64).max, np.iinfo(np.int64).min
         for m in range(class_start[k], class_start[k + 1]):
@@ -129,7 +135,32 @@ def build_grid(position, reach, order, class_start):
                 own_cell[m, d] = c
                 low[k, d] = min(low[k, d], c)
                 high[k, d] = max(high[k, d], c)
-            b = _hash(own_cell[m, 0], own_cell[m, 1], own_cell[m, 2], mask)
+        members = class_start[k + 1] - class_start[k]
+        cells = 1.0
+        for d in range(3):
+            cells *= high[k, d] - low[k, d] + 1.0
+        if cells <= DENSE_CELLS_PER_ITEM * members + 64.0:
+            dense[k] = True
+            size = np.int64(cells)
+        else:
+            size = 2
+            while size < 2 * members:
+                size *= 2
+        table_start[k + 1] = table_start[k] + size + 1
+    bucket = np.zeros(table_start[classes], dtype=np.int64)
+    item = np.empty(n, dtype=np.int64)
+    item_cell = np.empty((n, 3), dtype=np.int64)
+    item_position = np.empty((n, 3))
+    own_bucket = np.empty(n, dtype=np.int64)
+    for k in range(classes):
+        base, mask = table_start[k], table_start[k + 1] - table_start[k] - 2
+        nx, ny = high[k, 0] - low[k, 0] + 1, high[k, 1] - low[k, 1] + 1
+        for m in range(class_start[k], class_start[k + 1]):
+            if dense[k]:
+                b = _dense_bucket(own_cell[m, 0], own_cell[m, 1], own_cell[m, 2], low[k, 0],
+                                  low[k, 1], low[k, 2], nx, ny)
+            else:
+                b = _hash(own_cell[m, 0], own_cell[m, 1], own_cell[m, 2], mask)
             own_bucket[m] = b
             bucket[base + b + 1] += 1
         for b in range(base + 1, table_start[k + 1]):
@@ -148,7 +179,7 @@ def build_grid(position, reach, order, class_start):
         for b in range(table_start[k + 1] - 1, base, -1):
             bucket[b] = bucket[b - 1] + class_start[k]
         bucket[base] = class_start[k]
-    return (corner, cell, class_reach, class_start, low, high, table_start, bucket, item,
+    return (corner, cell, class_reach, class_start, low, high, dense, table_start, bucket, item,
             item_cell, item_position)
 
 
@@ -159,66 +190,83 @@ def _near(ax, ay, az, bx, by, bz, limit):
     return _dot(ox, oy, oz, ox, oy, oz) <= limit * limit * (1.0 + PAIR_SLACK)
 
 
-@njit(cache=True)
-def _push(out_a, out_b, count, a, b):
-    """Append (a, b), doubling the buffers when full; return them and the new count."""
-    if count == out_a.size:
-        grown_a, grown_b = np.empty(2 * count, dtype=np.int64), np.empty(2 * count,
-                                                                         dtype=np.int64)
-        grown_a[:count], grown_b[:count] = out_a, out_b
-        out_a, out_b = grown_a, grown_b
-    out_a[count], out_b[count] = a, b
-    return out_a, out_b, count + 1
+@njit(cache=True, inline='always')
+def _cell_range(value, search, corner, cell, low, high):
+    """Return the first and last cell index (clipped to low..high) within value +- search."""
+    a = max(np.floor((value - search - corner) / cell), float(low))
+    b = min(np.floor((value + search - corner) / cell), float(high))
+    return a, b
 
 
-@njit(cache=True)
-def _scan_class(corner, cell, class_start, low, high, table_start, bucket, item, item_cell,
-                item_position, k, x, y, z, search, query, skip_upto, own_reach, partner,
+@njit(cache=True, inline='always')
+def _scan_class(corner, cell, class_start, low, high, dense, table_start, bucket, item, item_cell,
+                item_position, k, x, y, z, search, query, after, own_reach, partner,
                 out_a, out_b, count):
-    """Append (query, j) for every item j of class k near (x, y, z); return the buffers.
+    """Write (query, j) for every item j of class k near (x, y, z); return the new count.
 
-    The box searched is ``search`` around the point; each candidate is kept
-    when |p - p_j| is within own_reach + partner[j]; with ``skip_upto`` >= 0
-    only items j > skip_upto are taken (a class searched against itself).
+    The box searched is ``search`` around the point; each candidate (item
+    t, particle j) is kept when |p - p_j| is within own_reach + partner[t]
+    (``partner`` in item order); only items t > ``after`` are taken (a
+    class searched against itself from item ``after``: each pair once).
+    Pairs beyond the buffers' size are counted, not written: the caller
+    grows the buffers and searches again.
     """
-    lo = np.empty(3, dtype=np.int64)
-    hi = np.empty(3, dtype=np.int64)
-    point = (x, y, z)
-    volume = 1.0
-    for d in range(3):
-        a = np.floor((point[d] - search - corner[d]) / cell[k])
-        b = np.floor((point[d] + search - corner[d]) / cell[k])
-        a, b = max(a, float(low[k, d])), min(b, float(high[k, d]))
-        if a > b:
-            return out_a, out_b, count
-        lo[d], hi[d] = np.int64(a), np.int64(b)
-        volume *= b - a + 1.0
-    start, stop = class_start[k], class_start[k + 1]
-    if volume > stop - start:
-        # A box with more cells than the class has particles: test them all.
+    width = cell[k]
+    ax, bx = _cell_range(x, search, corner[0], width, low[k, 0], high[k, 0])
+    ay, by = _cell_range(y, search, corner[1], width, low[k, 1], high[k, 1])
+    az, bz = _cell_range(z, search, corner[2], width, low[k, 2], high[k, 2])
+    if ax > bx or ay > by or az > bz:
+        return count
+    capacity = out_a.size
+    start, stop = max(class_start[k], after + 1), class_start[k + 1]
+    if (bx - ax + 1.0) * (by - ay + 1.0) * (bz - az + 1.0) > stop - start:
+        # A box with more cells than there are particles to test: test them all.
         for t in range(start, stop):
-            j = item[t]
-            if j <= skip_upto:
-                continue
             if _near(x, y, z, item_position[t, 0], item_position[t, 1], item_position[t, 2],
-                     own_reach + partner[j]):
-                out_a, out_b, count = _push(out_a, out_b, count, query, j)
-        return out_a, out_b, count
+                     own_reach + partner[t]):
+                if count < capacity:
+                    out_a[count], out_b[count] = query, item[t]
+                count += 1
+        return count
     base, mask = table_start[k], table_start[k + 1] - table_start[k] - 2
-    for cz in range(lo[2], hi[2] + 1):
-        for cy in range(lo[1], hi[1] + 1):
-            for cx in range(lo[0], hi[0] + 1):
+    if dense[k]:
+        # One range of items per row of cells along x (the cells are exact).
+        # Items are sorted by row, so rows before ``after``'s are empty of
+        # items past it: the scan starts at the later of az and its layer.
+        lx, ly, lz = low[k, 0], low[k, 1], low[k, 2]
+        nx, ny = high[k, 0] - lx + 1, high[k, 1] - ly + 1
+        first, last = np.int64(ax), np.int64(bx)
+        for cz in range(np.int64(az), np.int64(bz) + 1):
+            for cy in range(np.int64(ay), np.int64(by) + 1):
+                row = base + _dense_bucket(0, cy, cz, lx, ly, lz, nx, ny)
+                for t in range(max(bucket[row + first], start), bucket[row + last + 1]):
+                    if _near(x, y, z, item_position[t, 0], item_position[t, 1],
+                             item_position[t, 2], own_reach + partner[t]):
+                        if count < capacity:
+                            out_a[count], out_b[count] = query, item[t]
+                        count += 1
+        return count
+    for cz in range(np.int64(az), np.int64(bz) + 1):
+        for cy in range(np.int64(ay), np.int64(by) + 1):
+            for cx in range(np.int64(ax), np.int64(bx) + 1):
                 b = base + _hash(cx, cy, cz, mask)
-                for t in range(bucket[b], bucket[b + 1]):
+                for t in range(max(bucket[b], start), bucket[b + 1]):
                     if item_cell[t, 0] != cx or item_cell[t, 1] != cy or item_cell[t, 2] != cz:
                         continue
-                    j = item[t]
-                    if j <= skip_upto:
-                        continue
                     if _near(x, y, z, item_position[t, 0], item_position[t, 1],
-                             item_position[t, 2], own_reach + partner[j]):
-                        out_a, out_b, count = _push(out_a, out_b, count, query, j)
-    return out_a, out_b, count
+                             item_position[t, 2], own_reach + partner[t]):
+                        if count < capacity:
+                            out_a[count], out_b[count] = query, item[t]
+                        count += 1
+    return count
+
+
+@njit(cache=True)
+def _grown(out, count, size):
+    """Return a buffer of ``size`` holding the first ``count`` entries of ``out``."""
+    grown = np.empty(size, dtype=np.int64)
+    grown[:count] = out[:count]
+    return grown
 
 
 @njit(cache=True)
@@ -255,14 +303,18 @@ def sort_pairs(a, b, count, n):
 
 
 @njit(cache=True)
-def grid_pairs(reach, corner, cell, class_reach, class_start, low, high, table_start, bucket,
-               item, item_cell, item_position):
+def grid_pairs(reach, corner, cell, class_reach, class_start, low, high, dense, table_start,
+               bucket, item, item_cell, item_position):
     """Return every pair (i < j, sorted) with |p_i - p_j| <= reach_i + reach_j (and slack).
 
     Positions are the grid's (as built). Each particle is searched in its
-    own class (partners of larger index only) and in every larger class.
+    own class (each pair once, from its earlier item) and in every larger
+    class.
     """
     n = item.size
+    item_reach = np.empty(n)
+    for m in range(n):
+        item_reach[m] = reach[item[m]]
     out_a, out_b = np.empty(2 * n + 16, dtype=np.int64), np.empty(2 * n + 16, dtype=np.int64)
     count = 0
     classes = class_start.size - 1
@@ -274,48 +326,57 @@ def grid_pairs(reach, corner, cell, class_reach, class_start, low, high, table_s
             own = reach[i]
             for other in range(k, classes):
                 search = (own + class_reach[other]) * (1.0 + SCAN_SLACK)
-                out_a, out_b, count = _scan_class(
-                    corner, cell, class_start, low, high, table_start, bucket, item,
-                    item_cell, item_position, other, x, y, z, search, i,
-                    i if other == k else -1, own, reach, out_a, out_b, count)
+                before = count
+                count = _scan_class(corner, cell, class_start, low, high, dense, table_start,
+                                    bucket, item, item_cell, item_position, other, x, y, z,
+                                    search, i, m if other == k else -1, own, item_reach,
+                                    out_a, out_b, count)
+                if count > out_a.size:
+                    out_a = _grown(out_a, before, 2 * count)
+                    out_b = _grown(out_b, before, 2 * count)
+                    count = _scan_class(corner, cell, class_start, low, high, dense, table_start,
+                                        bucket, item, item_cell, item_position, other, x, y, z,
+                                        search, i, m if other == k else -1, own,
+                                        item_reach, out_a, out_b, before)
     return sort_pairs(out_a, out_b, count, n)
 
 
 @njit(cache=True)
 def grid_query(position, query, query_reach, partner, class_partner, corner, cell,
-               class_reach, class_start, low, high, table_start, bucket, item, item_cell,
-               item_position):
+               class_reach, class_start, low, high, dense, table_start, bucket, item,
+               item_cell, item_position):
     """Return (a, b): each query particle a = query[q] against every item b near it.
 
-    Near: |position[a] - p_b| <= query_reach[q] + partner[b] (p_b the
-    grid's position of b); ``class_partner`` holds each class's largest
-    ``partner``. Pairs come in query order, unsorted, a == b included.
+    Near: |position[a] - p_b| <= query_reach[q] + partner[t] (p_b the
+    grid's position of b, item t; ``partner`` in item order);
+    ``class_partner`` holds each class's largest ``partner``. Pairs come
+    in query order, unsorted, a == b included.
     """
     out_a = np.empty(16 * query.size + 16, dtype=np.int64)
     out_b = np.empty(16 * query.size + 16, dtype=np.int64)
     count = 0
     for q in range(query.size):
         a = query[q]
+        x, y, z = position[a, 0], position[a, 1], position[a, 2]
         for k in range(class_start.size - 1):
             search = (query_reach[q] + class_partner[k]) * (1.0 + SCAN_SLACK)
-            out_a, out_b, count = _scan_class(
-                corner, cell, class_start, low, high, table_start, bucket, item, item_cell,
-                item_position, k, position[a, 0], position[a, 1], position[a, 2], search, a,
-                -1, query_reach[q], partner, out_a, out_b, count)
+            before = count
+            count = _scan_class(corner, cell, class_start, low, high, dense, table_start, bucket,
+                                item, item_cell, item_position, k, x, y, z, search, a, -1,
+                                query_reach[q], partner, out_a, out_b, count)
+            if count > out_a.size:
+                out_a = _grown(out_a, before, 2 * count)
+                out_b = _grown(out_b, before, 2 * count)
+                count = _scan_class(corner, cell, class_start, low, high, dense, table_start,
+                                    bucket, item, item_cell, item_position, k, x, y, z, search,
+                                    a, -1, query_reach[q], partner, out_a, out_b, before)
     return out_a[:count], out_b[:count]
 
 
-@njit(cache=True)
-def class_largest(values, class_start, item):
-    """Return the largest of ``values`` over each class's items."""
-    classes = class_start.size - 1
-    out = np.zeros(classes)
-    for k in range(classes):
-        largest = -np.inf
-        for m in range(class_start[k], class_start[k + 1]):
-            largest = max(largest, values[item[m]])
-        out[k] = largest
-    return out
+def partner_terms(values: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
+    """Return ``values`` in the grid's item order and the largest of each class."""
+    in_order = np.ascontiguousarray(values, dtype=np.float64)[grid.item]
+    return in_order, np.maximum.reduceat(in_order, grid.class_start[:-1])
 
 
 @njit(cache=True)
@@ -385,8 +446,7 @@ def warm_up() -> None:
     grid = make_grid(position, reach, [np.array([0, 1]), np.array([2])])
     grid_pairs(reach, *grid)
     query = np.array([0], dtype=np.int64)
-    a, b = grid_query(position, query, reach[query], reach,
-                      class_largest(reach, grid.class_start, grid.item), *grid)
+    a, b = grid_query(position, query, reach[query], *partner_terms(reach, grid), *grid)
     keys = np.array([1], dtype=np.int64)
     merge_keys(keys, a, b, 3)
     movers(position, position, np.zeros(3), 0.5)
@@ -394,4 +454,4 @@ def warm_up() -> None:
 
 def kernels() -> list:
     """Return the compiled kernels of this module (for the cache check)."""
-    return [build_grid, grid_pairs, grid_query, class_largest, movers, merge_keys, sort_pairs]
+    return [build_grid, grid_pairs, grid_query, movers, merge_keys, sort_pairs]

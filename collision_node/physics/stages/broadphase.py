@@ -135,7 +135,7 @@ class BroadphaseStage(Stage):
         self._built_position: Optional[np.ndarray] = None
         self._built_radius: Optional[np.ndarray] = None
         self._half_skin = 0.0
-        self._radius = np.zeros(0)             # the radii the list was built with
+        self._radius = np.zeros(0)             # the listed radii, in the grid's item order
         self._class_radius = np.zeros(0)       # each size class's largest radius
         self._all_pairs = (_EMPTY, _EMPTY)
         self._all_pairs_count = -1
@@ -218,10 +218,8 @@ class BroadphaseStage(Stage):
         self._keys = self._search.i * n + self._search.j
         self._built_position = grid_kernels.as_points(position).copy()
         self._built_radius = radius
-        grid = self._search.grid
-        self._radius = np.ascontiguousarray(radius, dtype=np.float64)
-        self._class_radius = grid_kernels.class_largest(self._radius, grid.class_start,
-                                                        grid.item)
+        self._radius, self._class_radius = grid_kernels.partner_terms(radius,
+                                                                      self._search.grid)
         self.searches += 1
 
     def _with_mover_pairs(self, position: np.ndarray, radius: np.ndarray,
