@@ -73,6 +73,11 @@ def size_classes(reach: np.ndarray) -> list[np.ndarray]:
     m the smallest positive reach (reaches of 0 join the first class).
     Returns the non-empty classes, smallest reach first, indices ascending.
     """
+    largest = float(reach.max()) if reach.size else 0.0
+    if largest > 0.0 and largest < 1.9 * float(reach.min()):
+        # All reaches within a factor 1.9 (a gas of one size): one class, the
+        # logarithms below would give every particle level 0.
+        return [np.arange(reach.shape[0])]
     positive = reach[reach > 0.0]
     if positive.size == 0:
         return [np.arange(reach.shape[0])]
@@ -139,6 +144,7 @@ class BroadphaseStage(Stage):
         self._class_radius = np.zeros(0)       # each size class's largest radius
         self._all_pairs = (_EMPTY, _EMPTY)
         self._all_pairs_count = -1
+        self._median_radius, self._median_of = 0.0, None
         self._direct = False           # allowances too large for the skin: search each step
         self.searches = 0              # full searches so far (for tests and benchmarks)
         self.mover_updates = 0         # steps that patched the list with mover pairs
@@ -206,7 +212,10 @@ class BroadphaseStage(Stage):
                  inv_mass: np.ndarray, dt: float) -> None:
         """Search afresh with reach = radius + skin / 2 and remember the positions."""
         n = position.shape[0]
-        median_radius = _upper_median(radius)
+        if self._median_of is not radius:
+            # The list is tied to this radius array: its median is computed once.
+            self._median_radius, self._median_of = _upper_median(radius), radius
+        median_radius = self._median_radius
         dynamic = inv_mass > 0.0
         rms_speed = float(np.sqrt(np.mean(np.einsum('ij,ij->i', velocity[dynamic],
                                                     velocity[dynamic])))) \
