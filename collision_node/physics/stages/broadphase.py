@@ -2,15 +2,17 @@
 
 Particles are sorted into size classes by their reach (radius plus any
 margin): class k holds reaches in [m * 2^k, m * 2^(k+1)), m the smallest
-reach. Each class gets a k-d tree (scipy's cKDTree, C code). Pairs inside
-a class come from the tree's own pair search within twice the class's
-largest reach; pairs between two classes from a dual-tree search of the two
-trees within the sum of their largest reaches. Within a class reaches
-differ by less than a factor of two, so these searches find only a bounded
-multiple of the pairs that really are near, whatever the mix of sizes:
-ten-times-larger particles are never paired all-to-all, and a small
-particle is never searched with a large one's reach. Every pair found is
-then checked against its own reach_i + reach_j, so the result is exactly
+reach. Each class gets a uniform cell grid, cells twice the class's largest
+reach wide, built by a counting sort in compiled code (``grid_kernels``;
+dense rows of cells for compact scenes, hashed cells for scattered ones).
+Each particle is searched in its own class and in every larger class
+within its own reach plus that class's largest (at most 3 cells per
+axis). Within a class reaches differ by less than a factor of two, so
+these searches find only a bounded multiple of the pairs that really are
+near, whatever the mix of sizes: ten-times-larger particles are never
+paired all-to-all, and a small particle is never searched with a large
+one's reach. Every pair found is then checked against its own
+reach_i + reach_j, so the result is exactly
 the set of near pairs. Per-step cost grows about linearly with the count.
 
 The stage does not search every step. It keeps a Verlet list: the pairs
