@@ -194,3 +194,78 @@ def test_verlet_list_with_mixed_sizes_misses_no_contact():
     assert 1 < broadphase.searches < 100 and broadphase.mover_updates > 0
     assert check.overlaps_seen > 100
     assert world.kinetic_energy() == pytest.approx(energy, rel=1e-12)
+
+
+def scattered_set(rng, count: int, dimensions: int, scale: float, offset: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Return a mixed-size set (radii spread over three decades) at ``scale``, ``offset`` away.
+
+    Positions are those of a dense box at ``scale`` shifted by ``offset``;
+    a few huge particles (100x) and a few tiny ones (1/100x) join them.
+    """
+    position, radius = mixed_sizes(rng, count, dimensions, 0.15, 10.0, fraction=0.3)
+    radius = radius.copy()
+    radius[:4] *= 100.0
+    radius[4:12] /= 100.0
+    return offset + scale * position, scale * radius
+
+
+@pytest.mark.parametrize('dimensions', [2, 3])
+@pytest.mark.parametrize('scale, offset', [(1.0, 0.0), (1e-6, 0.0), (1.0, 1e9), (1e-6, 1.0),
+                                           (1e3, -1e9)])
+def test_grid_pairs_equal_brute_force_at_any_scale(dimensions, scale, offset):
+    rng = np.random.default_rng(int(dimensions + 10 * np.log10(scale + 1) + 7))
+    position, radius = scattered_set(rng, 600, dimensions, scale, offset)
+    reach = radius * rng.uniform(1.0, 1.3, radius.size)
+    i, j = candidate_pairs(position, reach)
+    expected = near_pairs(position, reach)
+    assert len(expected) > 300
+    assert set(zip(i.tolist(), j.tolist())) == expected
+    assert np.all(i < j) and np.all(np.diff(i * radius.size + j) > 0)
+
+
+def test_grid_pairs_of_far_apart_clusters_equal_brute_force():
+    # A cluster at the origin and one 1e9 m away, a particle of zero reach, two
+    # coincident ones: the grid hashes its cells instead of spanning the gap.
+    rng = np.random.default_rng(12)
+    near, _ = mixed_sizes(rng, 300, 3, 0.1, 10.0, fraction=0.3)
+    far = near[:200] + 1e9
+    position = np.vstack([near, far, near[:1]])
+    reach = np.concatenate([rng.uniform(0.04, 0.06, 300), rng.uniform(0.04, 0.06, 200),
+                            [0.05]])
+    reach[7] = 0.0
+    i, j = candidate_pairs(position, reach)
+    expected = near_pairs(position, reach)
+    assert (0, 500) in expected and any(a >= 300 for a, _ in expected)
+    assert set(zip(i.tolist(), j.tolist())) == expected
+    assert np.all(np.diff(i * position.shape[0] + j) > 0)
+
+
+def test_grid_handles_degenerate_sets():
+    # Every particle at one point with zero reach: all pairs touch (distance 0).
+    i, j = candidate_pairs(np.zeros((60, 3)), np.zeros(60))
+    assert i.size == 60 * 59 // 2
+    # Two particles: one pair or none.
+    i, j = candidate_pairs(np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]), np.array([0.5, 0.5]))
+    assert (i.tolist(), j.tolist()) == ([0], [1])
+    i, j = candidate_pairs(np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]), np.array([0.4, 0.5]))
+    assert i.size == 0
+
+
+def test_mover_queries_equal_a_fresh_search():
+    # The Verlet list patched with mover pairs holds every pair a fresh search finds
+    # (and no pair beyond the listed ones and the movers' reach).
+    rng = np.random.default_rng(21)
+    count = 2000
+    position, radius = mixed_sizes(rng, count, 3, 0.15, 10.0, fraction=0.2)
+    velocity = rng.normal(size=(count, 3))
+    stage = BroadphaseStage()
+    stage.find(position, radius, velocity, np.ones(count), 0.01)
+    moved = position.copy()
+    movers = rng.choice(count, 30, replace=False)
+    moved[movers] += rng.normal(scale=0.3, size=(30, 3))
+    i, j = stage.find(moved, radius, velocity, np.ones(count), 0.01)
+    assert stage.searches == 1 and stage.mover_updates == 1
+    found = set(zip(i.tolist(), j.tolist()))
+    assert near_pairs(moved, radius) <= found
+    assert np.all(np.diff(i * count + j) > 0)

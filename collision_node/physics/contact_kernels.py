@@ -1025,15 +1025,20 @@ def _warm_up() -> None:
     warm_up_sleep()
     from . import event_kernels     # the exact preset's event loop
     event_kernels.warm_up()
+    from . import grid_kernels, wall_kernels
+    grid_kernels.warm_up()
+    wall_kernels.warm_up()
 
 
 def _kernels() -> list:
+    from . import grid_kernels, wall_kernels
     from .coloring import greedy_colors
     from .event_kernels import build_events, run_events
     from .sleep_kernels import kernels as sleep_kernels
     from .swept_kernels import sweep
     return [solve_contacts, greedy_colors, find_overlaps, project_overlaps,
-            pay_for_lift, sweep, build_events, run_events] + sleep_kernels()
+            pay_for_lift, sweep, build_events, run_events, *sleep_kernels(),
+            *grid_kernels.kernels(), *wall_kernels.kernels()]
 
 
 _PREPARED = False

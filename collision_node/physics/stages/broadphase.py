@@ -2,15 +2,17 @@
 
 Particles are sorted into size classes by their reach (radius plus any
 margin): class k holds reaches in [m * 2^k, m * 2^(k+1)), m the smallest
-reach. Each class gets a k-d tree (scipy's cKDTree, C code). Pairs inside
-a class come from the tree's own pair search within twice the class's
-largest reach; pairs between two classes from a dual-tree search of the two
-trees within the sum of their largest reaches. Within a class reaches
-differ by less than a factor of two, so these searches find only a bounded
-multiple of the pairs that really are near, whatever the mix of sizes:
-ten-times-larger particles are never paired all-to-all, and a small
-particle is never searched with a large one's reach. Every pair found is
-then checked against its own reach_i + reach_j, so the result is exactly
+reach. Each class gets a uniform cell grid, cells twice the class's largest
+reach wide, built by a counting sort in compiled code (``grid_kernels``;
+dense rows of cells for compact scenes, hashed cells for scattered ones).
+Each particle is searched in its own class and in every larger class
+within its own reach plus that class's largest (at most 3 cells per
+axis). Within a class reaches differ by less than a factor of two, so
+these searches find only a bounded multiple of the pairs that really are
+near, whatever the mix of sizes: ten-times-larger particles are never
+paired all-to-all, and a small particle is never searched with a large
+one's reach. Every pair found is then checked against its own
+reach_i + reach_j, so the result is exactly
 the set of near pairs. Per-step cost grows about linearly with the count.
 
 The stage does not search every step. It keeps a Verlet list: the pairs
@@ -19,28 +21,29 @@ particles have together moved more than the skin since (two particles
 each moved at most skin/2 cannot have closed a gap larger than the skin).
 The check uses the actual positions, so it covers drift, separation, walls
 and any other stage. The few fast particles that moved more than skin/2
-("movers") are queried on their own against the class trees of the last
+("movers") are queried on their own against the class grids of the last
 search instead of forcing a full search; only when movers become common
-is the tree rebuilt. The result is exactly the set a fresh search would need.
+is the grid rebuilt. The result is exactly the set a fresh search would need.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from itertools import chain
+from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
-from scipy.spatial import cKDTree
 
+from .. import grid_kernels
+from ..grid_kernels import Grid
 from ..step import Stage, StepContext
 
 # Reaches within one size class differ by less than this factor: the
 # searches of a class overshoot by at most this ratio in distance.
 CLASS_RATIO = 2.0
-# Query radii are widened by this relative slack so that rounding in the
-# tree's distance never drops a pair the exact check below would keep.
-QUERY_SLACK = 1e-9
+# The pair test |p_i - p_j|^2 <= (reach_i + reach_j)^2 (1 + QUERY_SLACK) is a
+# little generous, so that rounding never drops a pair; the grid's cell
+# search is wider still (``grid_kernels.SCAN_SLACK``).
+QUERY_SLACK = grid_kernels.PAIR_SLACK
 # Skin of the Verlet list: about SKIN_STEPS steps of travel at the rms speed,
 # at most SKIN_MAX_RADII median radii (a wider skin costs more pairs than
 # the searches it saves), at least SKIN_MIN_RADII of them.
@@ -57,21 +60,12 @@ _EMPTY = np.zeros(0, dtype=np.int64)
 
 
 @dataclass
-class SizeClass:
-    """The particles of one size class and the k-d tree of their positions."""
-
-    index: np.ndarray                   # particle indices, ascending
-    tree: cKDTree                       # tree of position[index]
-    max_reach: float                    # largest reach in the class
-
-
-@dataclass
 class PairSearch:
-    """One search: its pairs and the class trees a later mover query needs."""
+    """One search: its pairs and the class grids a later mover query needs."""
 
     i: np.ndarray
     j: np.ndarray
-    classes: list = field(default_factory=list)     # SizeClass, smallest reach first
+    grid: Optional[Grid] = None
 
 
 def size_classes(reach: np.ndarray) -> list[np.ndarray]:
@@ -81,6 +75,11 @@ def size_classes(reach: np.ndarray) -> list[np.ndarray]:
     m the smallest positive reach (reaches of 0 join the first class).
     Returns the non-empty classes, smallest reach first, indices ascending.
     """
+    largest = float(reach.max()) if reach.size else 0.0
+    if largest > 0.0 and largest < 1.9 * float(reach.min()):
+        # All reaches within a factor 1.9 (a gas of one size): one class, the
+        # logarithms below would give every particle level 0.
+        return [np.arange(reach.shape[0])]
     positive = reach[reach > 0.0]
     if positive.size == 0:
         return [np.arange(reach.shape[0])]
@@ -95,44 +94,15 @@ def size_classes(reach: np.ndarray) -> list[np.ndarray]:
     return np.split(order, bounds)
 
 
-def _near(position_a: np.ndarray, position_b: np.ndarray, limit: np.ndarray) -> np.ndarray:
-    """Return the mask |a - b| <= limit, pair by pair (squares, a little generous).
-
-    Offsets so small that their squares underflow pass, as in the
-    narrowphase's prefilter: the exact contact test comes later.
-    """
-    offset = position_a - position_b
-    return np.einsum('ij,ij->i', offset, offset) <= limit * limit * (1.0 + QUERY_SLACK)
-
-
 def search_pairs(position: np.ndarray, reach: np.ndarray) -> PairSearch:
     """Search all pairs with |p_i - p_j| <= reach_i + reach_j, exactly those."""
     n = position.shape[0]
     if n < 2:
-        return PairSearch(_EMPTY, _EMPTY, [])
-    classes = [SizeClass(index, cKDTree(position[index]), float(reach[index].max()))
-               for index in size_classes(reach)]
-    parts_i, parts_j = [], []
-    for at, own in enumerate(classes):
-        if own.index.size >= 2:
-            pairs = own.tree.query_pairs(2.0 * own.max_reach * (1.0 + QUERY_SLACK),
-                                         output_type='ndarray')
-            parts_i.append(own.index[pairs[:, 0]])
-            parts_j.append(own.index[pairs[:, 1]])
-        for other in classes[at + 1:]:
-            # Dual-tree search between two classes: each side searched with
-            # its own class's reach, never the larger class's for both.
-            found = own.tree.sparse_distance_matrix(
-                other.tree, (own.max_reach + other.max_reach) * (1.0 + QUERY_SLACK),
-                output_type='ndarray')
-            parts_i.append(own.index[found['i']])
-            parts_j.append(other.index[found['j']])
-    if not parts_i:
-        return PairSearch(_EMPTY, _EMPTY, classes)
-    i, j = np.concatenate(parts_i), np.concatenate(parts_j)
-    keep = _near(position[i], position[j], reach[i] + reach[j])
-    i, j = _sorted_unique_pairs([i[keep]], [j[keep]], n, repeats=False)
-    return PairSearch(i, j, classes)
+        return PairSearch(_EMPTY, _EMPTY, None)
+    reach = np.ascontiguousarray(reach, dtype=np.float64)
+    grid = grid_kernels.make_grid(position, reach, size_classes(reach))
+    i, j = grid_kernels.grid_pairs(reach, *grid)
+    return PairSearch(i, j, grid)
 
 
 def candidate_pairs(position: np.ndarray, reach: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -154,40 +124,8 @@ def _upper_median(values: np.ndarray) -> float:
     return float(np.partition(values, middle)[middle])
 
 
-def _flatten_hits(queried: np.ndarray, hits) -> tuple[np.ndarray, np.ndarray]:
-    """Turn query_ball_point's list of index lists into two index arrays.
-
-    ``map(len, ...)`` and ``chain`` iterate in C: no Python loop per particle.
-    """
-    counts = np.fromiter(map(len, hits), dtype=np.int64, count=len(hits))
-    total = int(counts.sum())
-    if not total:
-        return _EMPTY, _EMPTY
-    found = np.fromiter(chain.from_iterable(hits), dtype=np.int64, count=total)
-    return np.repeat(queried, counts), found
-
-
-def _sorted_unique_pairs(parts_i: list, parts_j: list, n: int,
-                         repeats: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Concatenate pair parts, order each pair (i < j), sort by (i, j).
-
-    With ``repeats`` the parts may share pairs (and hold i == j), which are
-    dropped; without, they are known to be distinct and a sort suffices.
-    """
-    if not parts_i:
-        return _EMPTY, _EMPTY
-    i = np.concatenate(parts_i).astype(np.int64)
-    j = np.concatenate(parts_j).astype(np.int64)
-    if repeats:
-        keep = i != j
-        i, j = i[keep], j[keep]
-    keys = np.minimum(i, j) * n + np.maximum(i, j)
-    keys = np.unique(keys) if repeats else np.sort(keys)
-    return keys // n, keys % n
-
-
 class BroadphaseStage(Stage):
-    """Find candidate pairs: a Verlet list over k-d tree searches.
+    """Find candidate pairs: a Verlet list over cell-grid searches.
 
     The list is tied to the state's ``radius`` array object and particle
     count: spawning (a new, longer state) or assigning a new radius array
@@ -204,8 +142,11 @@ class BroadphaseStage(Stage):
         self._built_position: Optional[np.ndarray] = None
         self._built_radius: Optional[np.ndarray] = None
         self._half_skin = 0.0
+        self._radius = np.zeros(0)             # the listed radii, in the grid's item order
+        self._class_radius = np.zeros(0)       # each size class's largest radius
         self._all_pairs = (_EMPTY, _EMPTY)
         self._all_pairs_count = -1
+        self._median_radius, self._median_of = 0.0, None
         self._direct = False           # allowances too large for the skin: search each step
         self.searches = 0              # full searches so far (for tests and benchmarks)
         self.mover_updates = 0         # steps that patched the list with mover pairs
@@ -259,9 +200,9 @@ class BroadphaseStage(Stage):
 
     def _movers(self, position: np.ndarray, extra: np.ndarray) -> np.ndarray:
         """Return the particles whose displacement plus allowance exceeds skin/2."""
-        moved = position - self._built_position
-        return np.flatnonzero(np.sqrt(np.einsum('ij,ij->i', moved, moved)) + extra
-                              > self._half_skin)
+        return grid_kernels.movers(grid_kernels.as_points(position), self._built_position,
+                                   np.ascontiguousarray(extra, dtype=np.float64),
+                                   self._half_skin)
 
     def _list_matches(self, position: np.ndarray, radius: np.ndarray) -> bool:
         """Return whether the list was built for these particles (count and radii)."""
@@ -273,7 +214,10 @@ class BroadphaseStage(Stage):
                  inv_mass: np.ndarray, dt: float) -> None:
         """Search afresh with reach = radius + skin / 2 and remember the positions."""
         n = position.shape[0]
-        median_radius = _upper_median(radius)
+        if self._median_of is not radius:
+            # The list is tied to this radius array: its median is computed once.
+            self._median_radius, self._median_of = _upper_median(radius), radius
+        median_radius = self._median_radius
         dynamic = inv_mass > 0.0
         rms_speed = float(np.sqrt(np.mean(np.einsum('ij,ij->i', velocity[dynamic],
                                                     velocity[dynamic])))) \
@@ -283,48 +227,34 @@ class BroadphaseStage(Stage):
         self._half_skin = 0.5 * skin
         self._search = search_pairs(position, radius + self._half_skin)
         self._keys = self._search.i * n + self._search.j
-        self._built_position = position.copy()
+        self._built_position = grid_kernels.as_points(position).copy()
         self._built_radius = radius
+        self._radius, self._class_radius = grid_kernels.partner_terms(radius,
+                                                                      self._search.grid)
         self.searches += 1
 
     def _with_mover_pairs(self, position: np.ndarray, radius: np.ndarray,
                           movers: np.ndarray, extra: np.ndarray) -> np.ndarray:
         """Return the listed pair keys plus every pair a mover may now overlap."""
         n = position.shape[0]
-        parts_i, parts_j = [], []
         mover_reach = radius[movers] + extra[movers] + self._half_skin
-        for size_class in self._search.classes:
-            # A mover against a particle that moved <= skin/2: that particle's
-            # listed position is within r_i + r_j + skin/2 of the mover now.
-            # With an allowance e_j <= skin/2 - displacement_j for non-movers,
-            # the same bound holds with the mover's own e added.
-            listed = size_class.index
-            hits = size_class.tree.query_ball_point(
-                position[movers],
-                (mover_reach + float(radius[listed].max())) * (1.0 + QUERY_SLACK))
-            local, found = _flatten_hits(np.arange(movers.size), hits)
-            mover_i, partner = movers[local], listed[found]
-            keep = _near(position[mover_i], self._built_position[partner],
-                         mover_reach[local] + radius[partner])
-            parts_i.append(mover_i[keep])
-            parts_j.append(partner[keep])
+        # A mover against a particle that moved <= skin/2: that particle's
+        # listed position is within r_i + r_j + skin/2 of the mover now.
+        # With an allowance e_j <= skin/2 - displacement_j for non-movers,
+        # the same bound holds with the mover's own e added.
+        near_i, near_j = grid_kernels.grid_query(
+            grid_kernels.as_points(position), movers, mover_reach, self._radius,
+            self._class_radius, *self._search.grid)
         # Movers against movers, at their current positions (all pairs if few).
         if movers.size <= ALL_PAIRS_UP_TO:
             between_i, between_j = np.triu_indices(movers.size, k=1)
         else:
             between = search_pairs(position[movers], radius[movers] + extra[movers])
             between_i, between_j = between.i, between.j
-        parts_i.append(movers[between_i])
-        parts_j.append(movers[between_j])
-        extra_i, extra_j = _sorted_unique_pairs(parts_i, parts_j, n)
-        extra = extra_i * n + extra_j
-        keys = self._keys
-        at = np.searchsorted(keys, extra)
-        listed = keys[np.minimum(at, keys.size - 1)] == extra if keys.size else \
-            np.zeros(extra.size, dtype=bool)
-        return np.insert(keys, at[~listed], extra[~listed])
+        return grid_kernels.merge_keys(self._keys, np.concatenate([near_i, movers[between_i]]),
+                                       np.concatenate([near_j, movers[between_j]]), n)
 
     def describe(self) -> str:
         """Say what the stage does."""
-        return ('k-d tree per size class, pairs within r_i + r_j + skin, reused while no '
-                'particle pair moved a skin (fast movers queried alone)')
+        return ('hashed cell grid per size class (compiled), pairs within r_i + r_j + skin, '
+                'reused while no particle pair moved a skin (fast movers queried alone)')

@@ -22,6 +22,11 @@ far from the origin): 'walls' gets the impact's (1 - e^2)/2 m v^2, the
 rebound energy of a particle that comes to rest on the plane, and the
 lift (a negative loss) of a particle put back onto the plane without an
 impact on its path; 'friction' gets the friction impulse's work.
+
+``run_vectorised`` states this law with numpy, plane after plane; the
+stage runs it compiled (``wall_kernels.wall_pass``, backend 'kernel', the
+default): one pass over the particles, identical positions, velocities,
+spins, bookings and impact records (``test/test_wall_kernels.py``).
 """
 
 from __future__ import annotations
@@ -33,7 +38,14 @@ import numpy as np
 from ..contact_law import (apply_wall_friction, record_walls, reflect_on_plane,
                            wall_coefficient)
 from ..effects import Walls
+from ..impacts import WALL
 from ..step import Stage, StepContext
+from ..wall_kernels import (APPROACH, BACK, FRICTION_LOSS, IMPACT, NORMAL_IMPULSE, PARTICLE,
+                            POINT, TANGENTIAL, WALLS_LOSS, wall_pass)
+
+BACKENDS = ('kernel', 'numpy')
+_NONE = np.zeros(0)
+_NO_SPIN = np.zeros((0, 3))
 
 
 class WallStage(Stage):
@@ -41,13 +53,73 @@ class WallStage(Stage):
 
     name = 'walls'
 
-    def __init__(self, walls: Walls, friction: Optional[float] = None) -> None:
-        """Keep the planes and the Coulomb coefficient at walls (None: no friction)."""
+    def __init__(self, walls: Walls, friction: Optional[float] = None,
+                 backend: str = 'kernel') -> None:
+        """Keep the planes and the Coulomb coefficient at walls (None: no friction).
+
+        ``backend``: the compiled pass ('kernel') or the vectorised law ('numpy').
+        """
+        if backend not in BACKENDS:
+            raise ValueError(f'backend must be one of {BACKENDS}, got {backend!r}')
         self.walls = walls
         self.friction = friction
+        self.backend = backend
+        self._planes: dict = {}        # per dimensions: (axis, value, inward) arrays
 
     def run(self, ctx: StepContext) -> None:
         """Reflect and clamp in place; count wall impacts, book lost energy."""
+        if self.backend == 'numpy':
+            self.run_vectorised(ctx)
+            return
+        planes = self._planes.get(ctx.dimensions)
+        if planes is None:
+            found = self.walls.planes(ctx.dimensions)
+            planes = (np.array([axis for axis, _, _ in found], dtype=np.int64),
+                      np.array([value for _, value, _ in found], dtype=float),
+                      np.array([inward for _, _, inward in found], dtype=float), found)
+            self._planes[ctx.dimensions] = planes
+        s = ctx.state
+        gravity = ctx.effects.gravity
+        friction = self.friction is not None
+        floats, ints, plane_start = wall_pass(
+            s.position, s.velocity, _NO_SPIN if s.angular_velocity is None or not friction
+            else s.angular_velocity, s.radius, s.inv_mass,
+            _NONE if s.restitution is None else s.restitution, float(self.walls.restitution),
+            _NONE if s.friction is None or not friction else s.friction,
+            float(self.friction) if friction else 0.0, friction, planes[0], planes[1],
+            planes[2], gravity is not None,
+            np.zeros(3) if gravity is None else np.asarray(gravity, dtype=float), ctx.dt,
+            ctx.effects.threshold(ctx.dt), ctx.dimensions == 2)
+        if not ints.shape[0]:
+            return
+        # Book and record plane by plane, as the vectorised law does: the same
+        # arrays in the same order give the same totals to the last bit.
+        for k, (axis, plane, inward) in enumerate(planes[3]):
+            rows = slice(plane_start[k], plane_start[k + 1])
+            if rows.start == rows.stop:
+                continue
+            impact = ints[rows, IMPACT] == 1
+            particle = ints[rows, PARTICLE]
+            if not impact.all():
+                rest = ~impact
+                ctx.book('walls', floats[rows, WALLS_LOSS][rest], particle[rest])
+            if not impact.any():
+                continue
+            hit = particle[impact]
+            row = floats[rows][impact]
+            ctx.stats.wall_collisions += int(hit.size)
+            ctx.book('walls', row[:, WALLS_LOSS], hit)
+            if friction:
+                ctx.book('friction', row[:, FRICTION_LOSS], hit)
+            if ctx.impacts is not None:
+                normal = np.zeros((hit.size, 3))
+                normal[:, axis] = inward
+                ctx.impacts.record(ctx.time + ctx.dt - row[:, BACK], hit, WALL,
+                                   row[:, POINT:POINT + 3], normal, row[:, NORMAL_IMPULSE],
+                                   row[:, TANGENTIAL] if friction else 0.0, row[:, APPROACH])
+
+    def run_vectorised(self, ctx: StepContext) -> None:
+        """Apply the law with numpy, plane after plane (the compiled pass's reference)."""
         s = ctx.state
         dyn = s.dynamic
         gravity = ctx.effects.gravity
