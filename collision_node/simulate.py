@@ -23,7 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .physics.accuracy import parse_accuracy_text
-from .physics.contact_kernels import prepare as prepare_kernels
+from .physics.kernels import prepare as prepare_kernels
 from .physics.scene import load_scene
 from .physics.validation import SceneError
 from .physics.world import NonFiniteStateError, World

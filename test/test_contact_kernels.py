@@ -177,7 +177,7 @@ def test_stage_refuses_an_unknown_backend():
 
 
 def test_first_start_says_it_compiles_and_a_cached_start_says_nothing(tmp_path):
-    code = ('import sys\nfrom collision_node.physics import contact_kernels as k\n'
+    code = ('import sys\nfrom collision_node.physics import kernels as k\n'
             'took = k.prepare(lambda text: print(text, file=sys.stderr))\n'
             'print(took)\n')
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / 'numba'))
@@ -196,13 +196,13 @@ def test_the_cache_folder_follows_every_physics_source(tmp_path):
     # numba checks a cached kernel against its own file only; a kernel calling
     # the law in another module must not load stale code when that module changes.
     import shutil
-    from collision_node.physics import contact_kernels as k
+    from collision_node.physics import numba_cache as k
     copy = tmp_path / 'physics'
     shutil.copytree(os.path.dirname(k.__file__), copy,
                     ignore=shutil.ignore_patterns('__pycache__'))
     before = k.sources_digest(str(copy))
     assert before == k.sources_digest(os.path.dirname(k.__file__))
-    assert os.path.basename(k._CACHE_DIR) == f'numba-{before}'
+    assert os.path.basename(k.CACHE_DIR) == f'numba-{before}'
     law = copy / 'contact_law.py'
     law.write_text(law.read_text() + '\n# changed\n')
     assert k.sources_digest(str(copy)) != before

@@ -21,7 +21,7 @@ import sys
 import time
 from typing import Optional, Sequence
 
-from ..physics import contact_kernels
+from ..physics import kernels
 from ..physics.scene import parse_scene
 from ..physics.world import World
 from .throughput import gas_scene
@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the benchmark and print the table; return the exit code."""
     steps = args.steps if len(args.steps) == len(args.counts) else args.steps[:1] * len(
         args.counts)
-    contact_kernels.prepare()
+    kernels.prepare()
     load = os.getloadavg()
     print(f'# 3-D elastic gas, volume fraction {FRACTION:g}; CPU time; load average '
           f'{load[0]:.2f} {load[1]:.2f} {load[2]:.2f}, {os.cpu_count()} CPUs')

@@ -37,7 +37,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..physics.contact_kernels import prepare as prepare_kernels
+from ..physics.kernels import prepare as prepare_kernels
 from ..physics.reference import end_penetration
 from ..physics.scene import load_scene, parse_scene
 from ..physics.validation import SceneError

@@ -18,7 +18,9 @@ numpy call and is the law's reference the kernel is tested against.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from . import numba_cache  # noqa: F401,I100 (chooses numba's cache directory first)
+from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
 
 # Box2D v3 uses 24 colours; a bitmask per particle holds up to 64.
 MAX_COLORS = 32

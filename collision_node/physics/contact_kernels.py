@@ -18,59 +18,12 @@ folder named by a digest of the physics sources (see ``_cache_directory``).
 
 from __future__ import annotations
 
-import hashlib
 import math
-import os
-import time
-from typing import Callable, Optional
 
-import numba.core.config as _numba_config
 import numpy as np
 
-
-def sources_digest(here: Optional[str] = None) -> str:
-    """Return a short digest of every physics module's source (under ``here``).
-
-    numba checks a cached kernel against its own file only, not against the
-    compiled functions it calls from other modules (``swept_kernels`` calls
-    the law in this module): a change there would load stale machine code.
-    Keying the cache directory on all the physics sources makes any change
-    compile afresh instead.
-    """
-    here = here or os.path.dirname(os.path.abspath(__file__))
-    digest = hashlib.sha256()
-    for folder, _dirs, files in sorted(os.walk(here)):
-        for name in sorted(files):
-            if name.endswith('.py'):
-                with open(os.path.join(folder, name), 'rb') as source:
-                    digest.update(name.encode() + b'\0' + source.read())
-    return digest.hexdigest()[:16]
-
-
-def _cache_directory() -> str:
-    """Return numba's cache directory for this version of the physics sources.
-
-    Under ``NUMBA_CACHE_DIR`` if set, else the package's ``__pycache__``
-    when writable, else the user's cache (``$XDG_CACHE_HOME`` or
-    ``~/.cache``)/collision_node; each in a folder named by the digest.
-    """
-    here = os.path.dirname(os.path.abspath(__file__))
-    folder = f'numba-{sources_digest()}'
-    if os.environ.get('NUMBA_CACHE_DIR'):
-        return os.path.join(os.environ['NUMBA_CACHE_DIR'], 'collision_node', folder)
-    pycache = os.path.join(here, '__pycache__')
-    target = pycache if os.path.isdir(pycache) else here
-    if os.access(target, os.W_OK):
-        return os.path.join(pycache, folder)
-    base = os.environ.get('XDG_CACHE_HOME') or os.path.join(os.path.expanduser('~'), '.cache')
-    return os.path.join(base, 'collision_node', folder)
-
-
-_CACHE_DIR = _cache_directory()
-# Before the first compile: numba reads it when a dispatcher finds its cache.
-_numba_config.CACHE_DIR = _CACHE_DIR
-
-from numba import njit  # noqa: E402 (after the cache directory is chosen)
+from . import numba_cache  # noqa: F401,I100 (chooses numba's cache directory first)
+from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
 
 from .energy import SPHERE_INERTIA  # noqa: E402
 
@@ -988,8 +941,8 @@ def pay_for_lift(position, start, velocity, inv_mass, dynamic, pi, pj, added, bu
     return removed
 
 
-def _warm_up() -> None:
-    """Call every kernel once on a tiny problem (compiles or loads from the cache)."""
+def warm_up() -> None:
+    """Call this module's kernels once on a tiny problem (compiles or loads the cache)."""
     from .coloring import greedy_colors
     v = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
     ang = np.zeros((2, 3))
@@ -1019,58 +972,9 @@ def _warm_up() -> None:
                      found_penetration, 2, True, True, low, high, 3, np.zeros(1, dtype=np.int64),
                      np.full(1, -10.0), np.ones(1))
     pay_for_lift(position, start, v, inv_mass, dynamic, pi, pj, np.ones(2), np.zeros(2))
-    from . import swept_kernels
-    swept_kernels._warm_up()
-    from .sleep_kernels import warm_up as warm_up_sleep
-    warm_up_sleep()
-    from . import event_kernels     # the exact preset's event loop
-    event_kernels.warm_up()
-    from . import grid_kernels, wall_kernels
-    grid_kernels.warm_up()
-    wall_kernels.warm_up()
 
 
-def _kernels() -> list:
-    from . import grid_kernels, wall_kernels
+def kernels() -> list:
+    """Return the compiled kernels of this module (for ``kernels.prepare``)."""
     from .coloring import greedy_colors
-    from .event_kernels import build_events, run_events
-    from .sleep_kernels import kernels as sleep_kernels
-    from .swept_kernels import sweep
-    return [solve_contacts, greedy_colors, find_overlaps, project_overlaps,
-            pay_for_lift, sweep, build_events, run_events, *sleep_kernels(),
-            *grid_kernels.kernels(), *wall_kernels.kernels()]
-
-
-_PREPARED = False
-
-
-def prepare(say: Optional[Callable[[str], None]] = None) -> float:
-    """Compile the contact kernels, or load them from the cache; return the seconds taken.
-
-    ``say`` (e.g. a logger's info) hears 'compiling ...' before a compile
-    and how long it took after; loading from the cache is silent. Later
-    calls do nothing and return 0.
-    """
-    global _PREPARED
-    if _PREPARED:
-        return 0.0
-    compiling = not all(_cached(kernel) for kernel in _kernels())
-    if compiling and say is not None:
-        where = _CACHE_DIR
-        say(f'compiling the contact kernels with numba (first start only; cached in {where})')
-    start = time.perf_counter()
-    _warm_up()
-    took = time.perf_counter() - start
-    _PREPARED = True
-    if compiling and say is not None:
-        say(f'contact kernels compiled in {took:.1f} s')
-    return took
-
-
-def _cached(dispatcher) -> bool:
-    """Say whether ``dispatcher`` has a cache index on disk (loading, not compiling)."""
-    try:
-        # An index of another source version loads as empty: that is a compile too.
-        return bool(dispatcher._cache._cache_file._load_index())
-    except (AttributeError, OSError, EOFError):    # another numba: assume a compile
-        return False
+    return [solve_contacts, greedy_colors, find_overlaps, project_overlaps, pay_for_lift]

@@ -37,7 +37,7 @@ import math
 
 import numpy as np
 
-# contact_kernels chooses numba's cache directory; it must load before numba.
+from . import numba_cache  # noqa: F401,I100 (chooses numba's cache directory first)
 from .contact_kernels import _dot, line_of_action, pair_impulse  # noqa: I100
 from numba import njit  # noqa: E402,I100
 
@@ -594,3 +594,8 @@ def warm_up() -> None:
                params, flags, cell, table, head, nxt, prv, occupancy, ref_time,
                np.full(2, -np.inf), count, own_next, h_time, h_int, meta, np.zeros(2),
                np.zeros(2), np.empty((4, RECORD_COLUMNS)), np.empty((4, 2), dtype=np.int64))
+
+
+def kernels() -> list:
+    """Return the compiled kernels of this module (for ``kernels.prepare``)."""
+    return [build_events, run_events]

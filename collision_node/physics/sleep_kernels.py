@@ -15,8 +15,8 @@ import math
 
 import numpy as np
 
-# Imported first: it sets numba's cache directory before numba is imported.
-from .contact_kernels import _root
+from . import numba_cache  # noqa: F401,I100 (chooses numba's cache directory first)
+from .contact_kernels import _root  # noqa: I100
 
 from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
 
@@ -143,5 +143,5 @@ def warm_up() -> None:
 
 
 def kernels() -> list:
-    """Return the compiled kernels of this module (for ``contact_kernels.prepare``)."""
+    """Return the compiled kernels of this module (for ``kernels.prepare``)."""
     return [settle_islands, near_sleepers]

@@ -25,7 +25,7 @@ import math
 
 import numpy as np
 
-from . import contact_kernels  # noqa: F401 (chooses numba's cache directory first)
+from . import numba_cache  # noqa: F401 (chooses numba's cache directory first)
 from numba import njit  # noqa: E402 (after the cache directory is chosen)
 
 from .contact_kernels import _dot, _friction, line_of_action, pair_impulse  # noqa: E402
@@ -599,7 +599,7 @@ def sweep(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, 
     return records[:count], index[:count]
 
 
-def _warm_up() -> None:
+def warm_up() -> None:
     """Run the swept step once on a tiny problem of each kind (compiles or loads)."""
     x = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [0.0, 3.0, 0.0]])
     v = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
@@ -615,3 +615,8 @@ def _warm_up() -> None:
               np.zeros((3, 6), dtype=bool), True, 0.1, 1.0, 1.0, 32, False, True,
               np.zeros((3, 3)), np.zeros(3), np.zeros(4, dtype=np.int64),
               workspace(3, 2, 3))
+
+
+def kernels() -> list:
+    """Return the compiled kernels of this module (for ``kernels.prepare``)."""
+    return [sweep]

@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from . import contact_kernels  # noqa: F401 (chooses numba's cache directory first)
+from . import numba_cache  # noqa: F401 (chooses numba's cache directory first)
 from .contact_kernels import _friction
 
 from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)

@@ -29,7 +29,7 @@ from msg_adapters import (clock_message, marker_array_bytes, point_cloud_bytes,
                           pose_array_bytes, velocities_bytes)
 
 from ..physics.accuracy import parse_accuracy_text
-from ..physics.contact_kernels import prepare as prepare_kernels
+from ..physics.kernels import prepare as prepare_kernels
 from ..physics.scene import load_scene
 from ..physics.validation import SceneError
 from ..physics.world import NonFiniteStateError, World
