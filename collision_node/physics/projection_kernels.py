@@ -50,32 +50,113 @@ EPSILON = 2.220446049250313e-16
 
 
 @njit(cache=True)
-def _near_pairs(position, radius, inv_mass, ci, cj, gravity, ordered, near, height):
-    """Write the near candidates (indices into ci/cj) to ``near``, lowest first; return count."""
+def _order(position, gravity, ordered, near_a, near_b, count, n):
+    """Sort the near pairs in place by (a, b), then stably from the lowest (along g) up."""
+    if count < 2:
+        return
+    key = np.empty(count, dtype=np.int64)
+    for q in range(count):
+        key[q] = near_a[q] * n + near_b[q]
+    first = np.argsort(key, kind='mergesort')
+    a_sorted, b_sorted = near_a[:count][first], near_b[:count][first]
+    if ordered:
+        height = np.empty(count)
+        for q in range(count):
+            a, b = a_sorted[q], b_sorted[q]
+            ha = -(position[a, 0] * gravity[0] + position[a, 1] * gravity[1]
+                   + position[a, 2] * gravity[2])
+            hb = -(position[b, 0] * gravity[0] + position[b, 1] * gravity[1]
+                   + position[b, 2] * gravity[2])
+            height[q] = min(ha, hb)
+        second = np.argsort(height, kind='mergesort')
+        a_sorted, b_sorted = a_sorted[second], b_sorted[second]
+    near_a[:count] = a_sorted
+    near_b[:count] = b_sorted
+
+
+@njit(cache=True)
+def _is_near(position, radius, inv_mass, a, b):
+    """Say whether pair (a, b) can move and lies within the near reach."""
+    if not (inv_mass[a] + inv_mass[b]) > 0.0:
+        return False
+    ox = position[a, 0] - position[b, 0]
+    oy = position[a, 1] - position[b, 1]
+    oz = position[a, 2] - position[b, 2]
+    reach = (radius[a] + radius[b]) * (1.0 + NEAR_FRACTION)
+    return ox * ox + oy * oy + oz * oz < reach * reach
+
+
+@njit(cache=True)
+def _near_candidates(position, radius, inv_mass, ci, cj):
+    """Return the candidate pairs (i < j) within the near reach."""
+    near_a = np.empty(ci.size, dtype=np.int64)
+    near_b = np.empty(ci.size, dtype=np.int64)
     count = 0
     for k in range(ci.size):
-        a, b = ci[k], cj[k]
-        if not (inv_mass[a] + inv_mass[b]) > 0.0:
-            continue
-        ox = position[a, 0] - position[b, 0]
-        oy = position[a, 1] - position[b, 1]
-        oz = position[a, 2] - position[b, 2]
-        reach = (radius[a] + radius[b]) * (1.0 + NEAR_FRACTION)
-        if not ox * ox + oy * oy + oz * oz < reach * reach:
-            continue
-        near[count] = k
-        ha = -(position[a, 0] * gravity[0] + position[a, 1] * gravity[1]
-               + position[a, 2] * gravity[2])
-        hb = -(position[b, 0] * gravity[0] + position[b, 1] * gravity[1]
-               + position[b, 2] * gravity[2])
-        height[count] = min(ha, hb)
-        count += 1
-    if ordered and count > 1:
-        order = np.argsort(height[:count], kind='mergesort')
-        chosen = near[:count].copy()
-        for q in range(count):
-            near[q] = chosen[order[q]]
-    return count
+        a, b = min(ci[k], cj[k]), max(ci[k], cj[k])
+        if _is_near(position, radius, inv_mass, a, b):
+            near_a[count], near_b[count] = a, b
+            count += 1
+    return near_a[:count].copy(), near_b[:count].copy()
+
+
+@njit(cache=True)
+def _near_grid(position, radius, inv_mass, dimensions):
+    """Return every pair (i < j) within the near reach, found on a hashed uniform grid."""
+    n = position.shape[0]
+    none = np.zeros(0, dtype=np.int64)
+    if n < 2:
+        return none, none
+    cell = 2.0 * radius.max() * (1.0 + NEAR_FRACTION)
+    if not cell > 0.0:
+        return none, none
+    origin = np.empty(3)
+    for axis in range(3):
+        origin[axis] = position[:, axis].min()
+    coords = np.zeros((n, 3), dtype=np.int64)
+    size = 1
+    while size < 2 * n:
+        size *= 2
+    bucket = np.empty(n, dtype=np.int64)
+    for p in range(n):
+        for axis in range(dimensions):
+            coords[p, axis] = int(math.floor((position[p, axis] - origin[axis]) / cell))
+        bucket[p] = _hash(coords[p, 0], coords[p, 1], coords[p, 2], size)
+    by_bucket = np.argsort(bucket, kind='mergesort')
+    begin = np.zeros(size + 1, dtype=np.int64)
+    for p in range(n):
+        begin[bucket[p] + 1] += 1
+    for h in range(size):
+        begin[h + 1] += begin[h]
+    span_z = 1 if dimensions == 3 else 0
+    out_a = np.empty(4 * n, dtype=np.int64)
+    out_b = np.empty(4 * n, dtype=np.int64)
+    count = 0
+    for a in range(n):
+        for dx in range(-1, 2):
+            for dy in range(-1, 2):
+                for dz in range(-span_z, span_z + 1):
+                    cx, cy, cz = coords[a, 0] + dx, coords[a, 1] + dy, coords[a, 2] + dz
+                    h = _hash(cx, cy, cz, size)
+                    for q in range(begin[h], begin[h + 1]):
+                        b = by_bucket[q]
+                        if b <= a or coords[b, 0] != cx or coords[b, 1] != cy \
+                                or coords[b, 2] != cz:
+                            continue
+                        if not _is_near(position, radius, inv_mass, a, b):
+                            continue
+                        if count == out_a.size:
+                            out_a = np.concatenate((out_a, np.empty(out_a.size, np.int64)))
+                            out_b = np.concatenate((out_b, np.empty(out_b.size, np.int64)))
+                        out_a[count], out_b[count] = a, b
+                        count += 1
+    return out_a[:count].copy(), out_b[:count].copy()
+
+
+@njit(cache=True)
+def _hash(cx, cy, cz, size):
+    """Return the bucket of a grid cell (size: a power of two)."""
+    return ((cx * 73856093) ^ (cy * 19349663) ^ (cz * 83492791)) & (size - 1)
 
 
 @njit(cache=True)
@@ -136,53 +217,60 @@ def _pair_visit(position, velocity, inv_mass, radius, a, b, hold, low, high, dim
 @njit(cache=True)
 def project_contacts(position, velocity, inv_mass, radius, dynamic, ci, cj, gravity, ordered,
                      p_axis, p_value, p_inward, low, high, dimensions, hold, relax,
-                     tolerance, max_passes, touched, shock_after):
-    """Project overlaps away in place; return (passes run, worst excess over tolerance, m).
+                     tolerance, max_passes, shock_after):
+    """Project overlaps away in place; return (passes, worst excess over tolerance (m), i, j).
 
-    ``ci``/``cj``: the step's candidate pairs; ``touched`` (one flag per
-    candidate) is set for every candidate found overlapping in a visit.
-    The excess is the largest penetration minus its tolerance in the last
-    pass (<= 0: converged; -inf: nothing touched or overlapped).
+    ``ci``/``cj``: the step's candidate pairs. The excess is the largest
+    penetration minus its tolerance in the last pass (<= 0: converged;
+    -inf: nothing overlapped); (i, j) are the pairs found overlapping in
+    some visit (repeats possible).
     """
-    n, m = position.shape[0], ci.size
+    n = position.shape[0]
     spacing = np.empty(n)
     for p in range(n):
         big = max(abs(position[p, 0]), abs(position[p, 1]), abs(position[p, 2]))
         spacing[p] = SPACINGS * EPSILON * big
-    near = np.empty(m, dtype=np.int64)
-    height = np.empty(m)
+    near_a, near_b = _near_candidates(position, radius, inv_mass, ci, cj)
+    _order(position, gravity, ordered, near_a, near_b, near_a.size, n)
     built = position.copy()
-    count = _near_pairs(position, radius, inv_mass, ci, cj, gravity, ordered, near, height)
+    touched_a = np.empty(max(near_a.size, 16), dtype=np.int64)
+    touched_b = np.empty(max(near_a.size, 16), dtype=np.int64)
+    touched = 0
     worst = -math.inf
     passes = 0
     while passes < max_passes:
         passes += 1
         worst = _wall_pass(position, radius, dynamic, p_axis, p_value, p_inward, tolerance,
                            spacing)
-        for q in range(count):
-            k = near[q]
-            a, b = ci[k], cj[k]
+        shock = ordered and passes > shock_after
+        for q in range(near_a.size):
+            a, b = near_a[q], near_b[q]
             pen = _pair_visit(position, velocity, inv_mass, radius, a, b, hold, low, high,
-                              dimensions, relax, ordered and passes > shock_after, gravity)
+                              dimensions, relax, shock, gravity)
             if pen > 0.0:
-                touched[k] = True
+                if touched == touched_a.size:
+                    touched_a = np.concatenate((touched_a, np.empty(touched, np.int64)))
+                    touched_b = np.concatenate((touched_b, np.empty(touched, np.int64)))
+                touched_a[touched], touched_b[touched] = a, b
+                touched += 1
                 worst = max(worst, pen - (tolerance * min(radius[a], radius[b])
                                           + max(spacing[a], spacing[b])))
         if not worst > 0.0:
             break
         # A particle that moved a near fraction of its radius since the list was
-        # built may reach a candidate that is not on it: build the list again.
+        # built may reach a pair that is not on it (nor among the step's
+        # candidates): search the grid again.
         for p in range(n):
             dx = position[p, 0] - built[p, 0]
             dy = position[p, 1] - built[p, 1]
             dz = position[p, 2] - built[p, 2]
             reach = NEAR_FRACTION * radius[p]
             if dx * dx + dy * dy + dz * dz >= reach * reach:
-                count = _near_pairs(position, radius, inv_mass, ci, cj, gravity, ordered,
-                                    near, height)
+                near_a, near_b = _near_grid(position, radius, inv_mass, dimensions)
+                _order(position, gravity, ordered, near_a, near_b, near_a.size, n)
                 built[...] = position
                 break
-    return passes, worst
+    return passes, worst, touched_a[:touched].copy(), touched_b[:touched].copy()
 
 
 def warm_up() -> None:
@@ -194,7 +282,7 @@ def warm_up() -> None:
     project_contacts(position, velocity, ones, ones, np.ones(2, dtype=np.bool_), pi, pj,
                      np.array([0.0, -9.81, 0.0]), True, np.zeros(1, dtype=np.int64),
                      np.full(1, -10.0), np.ones(1), np.full(3, -10.0), np.full(3, 10.0), 3,
-                     True, 1.0, 1e-3, 8, np.zeros(1, dtype=np.bool_), 2)
+                     True, 1.0, 1e-3, 8, 2)
 
 
 def kernels() -> list:

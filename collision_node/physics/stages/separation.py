@@ -262,14 +262,12 @@ class SeparationStage(Stage):
         gravity = ctx.effects.gravity
         gravity = None if gravity is None else np.asarray(gravity, float)
         start = s.position.copy() if gravity is not None else None
-        touched = np.zeros(ci.size, dtype=np.bool_)
-        self._project(ctx, ci, cj, gravity, touched)
+        i, j = self._project(ctx, ci, cj, gravity)
         if gravity is None:
             return
         added = lift(s.inv_mass, s.position - start, gravity)   # delta U per particle
         budget = ctx.losses if ctx.losses is not None else np.zeros(len(s))
         # Clusters: the step's contacts and every pair the projection pushed apart.
-        i, j = ci[touched], cj[touched]
         if has_pairs:
             i, j = np.concatenate([c.i, i]), np.concatenate([c.j, j])
         if self.backend == 'kernel':
@@ -329,19 +327,18 @@ class SeparationStage(Stage):
         return removed
 
     def _project(self, ctx: StepContext, ci: np.ndarray, cj: np.ndarray,
-                 gravity: Optional[np.ndarray], touched: np.ndarray) -> None:
-        """Run the projection with the stage's backend (see the module docstring)."""
+                 gravity: Optional[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Run the projection with the stage's backend; return the pairs it pushed apart."""
         s, dims, walls = ctx.state, ctx.dimensions, self.walls
         if self.backend == 'numpy':
-            self.passes, self.excess = project_reference(
-                s.position, s.velocity, s.inv_mass, s.radius, ci, cj, gravity, walls, dims,
-                touched)
-            return
+            self.passes, self.excess, i, j = project_reference(
+                s.position, s.velocity, s.inv_mass, s.radius, ci, cj, gravity, walls, dims)
+            return i, j
         planes = walls.planes(dims) if walls is not None else []
         low = np.full(3, -np.inf) if walls is None else np.asarray(walls.low, dtype=float)
         high = np.full(3, np.inf) if walls is None else np.asarray(walls.high, dtype=float)
         position = np.ascontiguousarray(s.position, dtype=float)
-        self.passes, self.excess = project_contacts(
+        self.passes, self.excess, i, j = project_contacts(
             position, np.ascontiguousarray(s.velocity, dtype=float),
             np.ascontiguousarray(s.inv_mass, dtype=float),
             np.ascontiguousarray(s.radius, dtype=float),
@@ -350,9 +347,10 @@ class SeparationStage(Stage):
             np.array([p[0] for p in planes], dtype=np.int64),
             np.array([p[1] for p in planes], dtype=float),
             np.array([p[2] for p in planes], dtype=float), low, high, dims,
-            walls is not None, RELAXATION, TOLERANCE, MAX_PASSES, touched, SHOCK_AFTER)
+            walls is not None, RELAXATION, TOLERANCE, MAX_PASSES, SHOCK_AFTER)
         if position is not s.position:
             s.position[...] = position
+        return i, j
 
     def describe(self) -> str:
         """Say what the stage does."""
