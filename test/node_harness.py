@@ -1,13 +1,15 @@
 """Start the installed executables as processes and talk to them over real topics.
 
 Every process gets ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` and a
-``ROS_DOMAIN_ID`` of its own (derived from the test process id and a
-counter), so concurrent test runs and tests do not hear each other.
+``ROS_DOMAIN_ID`` of its own (leased through a lock file, see
+:func:`unique_domain_id`), so concurrent test runs and tests do not hear
+each other.
 Synchronisation is always "spin until a message says so, or time out".
 """
 
 from __future__ import annotations
 
+import fcntl
 import itertools
 import json
 import os
@@ -27,13 +29,40 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 _domains = itertools.count()
+# Domain id -> the open lock file that holds it, oldest first.
+_leases: dict[int, Any] = {}
+_KEPT_LEASES = 8
 STATUS_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def unique_domain_id() -> int:
-    """Return a ROS domain id in 1..101 not used by another test of this run."""
-    return 1 + (os.getpid() * 7 + 13 * next(_domains)) % 101
+    """Return a ROS domain id in 1..101 that no other test process on this machine holds.
+
+    Each id is leased through an exclusive lock on a file in the temporary
+    directory, so concurrent test runs (two checkouts, a benchmark's run)
+    never share a domain and hear each other; a process keeps its last
+    ``_KEPT_LEASES`` leases (tests run one after another) and frees older ones.
+    101 is the highest id whose ports stay out of Linux's ephemeral range.
+    """
+    first = (os.getpid() * 7 + 13 * next(_domains)) % 101
+    for step in range(101):
+        domain = 1 + (first + step) % 101
+        if domain in _leases:
+            continue
+        path = os.path.join(tempfile.gettempdir(), f'collision_node_test_domain_{domain}.lock')
+        handle = open(path, 'a')
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.close()
+            continue
+        _leases[domain] = handle
+        while len(_leases) > _KEPT_LEASES:
+            oldest = next(iter(_leases))
+            _leases.pop(oldest).close()
+        return domain
+    raise RuntimeError('every ROS domain id 1..101 is held by another test process')
 
 
 def executable(name: str) -> str:
