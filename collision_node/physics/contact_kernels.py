@@ -56,6 +56,11 @@ STICK_FACTOR = 1.0 + SPIN_FACTOR
 # Rows of the per-particle loss array the solve returns.
 RESTITUTION, WALLS, FRICTION = 0, 1, 2
 EFFECTS = ('restitution', 'walls', 'friction')
+# The last row sums every booking per particle in the order it happens,
+# starting from the step's losses so far: the same additions in the same
+# order as ``StepContext.book`` makes them in the numpy reference, so the
+# separation stage's budget is bit for bit the reference's.
+BOOKED = len(EFFECTS)
 
 
 @njit(cache=True, inline='always')
@@ -181,7 +186,16 @@ def _share(inv_mass, a, b):
 def _book_pair(loss, effect, a, b, removed, share):
     """Book a pair's loss to its particles, a taking ``share`` (``_share``)."""
     loss[effect, a] += removed * share
+    loss[BOOKED, a] += removed * share
     loss[effect, b] += removed * (1.0 - share)
+    loss[BOOKED, b] += removed * (1.0 - share)
+
+
+@njit(cache=True, inline='always')
+def _book(loss, effect, p, removed):
+    """Book a loss to particle ``p``."""
+    loss[effect, p] += removed
+    loss[BOOKED, p] += removed
 
 
 @njit(cache=True)
@@ -333,13 +347,17 @@ def _friction_vector(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse,
 def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_inward,
                       w_rest, w_mu, w_impact, struck, use_threshold, threshold, tolerance,
                       strike, friction, planar, w_hit, w_normal, w_tangential, loss, totals,
-                      spin, accumulate, w_acc, w_acc_impact, w_acc_t):
+                      spin, accumulate, w_acc, w_acc_impact, w_acc_t, w_approach0,
+                      strike_speed):
     """Solve one wall plane's contacts (distinct particles); return whether any changed.
 
     ``spin``: each particle's ``spin_factor`` (used with friction only).
     With ``accumulate`` the resting impulse of each contact is accumulated
     (``w_acc``) and may be taken back down to 0 when the particle leaves the
-    plane (see ``solve_contacts``); impact impulses go to ``w_acc_impact``.
+    plane (see ``solve_contacts``); impact impulses go to ``w_acc_impact``,
+    and a bounce reflects at most the closing speed its impact had
+    (``_bounce_cap``: ``w_approach0`` at the solve's start, ``strike_speed``
+    for a struck particle).
     """
     any_hit = False
     for c in range(start, stop):
@@ -351,15 +369,28 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
                 e = 0.0
         approach = -inward * v[p, axis]
         if approach > tolerance:
-            change = (1.0 + e) * approach
-            v[p, axis] += inward * change
-            magnitude = change / inv_mass[p]
-            removed = 0.5 * magnitude * approach * (1.0 - e)
-            if use_threshold and e > 0.0 and approach >= strike * threshold:
+            bounce = approach
+            if accumulate and e > 0.0:
+                cap = w_approach0[c] if w_impact[c] else 0.0
+                if struck[p]:
+                    cap = max(cap, strike_speed[p])
+                bounce = min(approach, cap)
+            if bounce < approach:
+                change = approach + e * bounce
+                v[p, axis] += inward * change
+                magnitude = change / inv_mass[p]
+                removed = 0.5 * magnitude * (approach - e * bounce)
+            else:
+                change = (1.0 + e) * approach
+                v[p, axis] += inward * change
+                magnitude = change / inv_mass[p]
+                removed = 0.5 * magnitude * approach * (1.0 - e)
+            if use_threshold and e > 0.0 and bounce >= strike * threshold:
                 struck[p] = True
+                strike_speed[p] = max(strike_speed[p], bounce)
             w_hit[c] = True
             if accumulate:
-                if approach >= threshold:
+                if w_impact[c] or e > 0.0:
                     w_acc_impact[c] += magnitude
                 else:
                     w_acc[c] += magnitude
@@ -375,7 +406,7 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
             continue
         if approach > tolerance or approach < -tolerance:
             any_hit = True
-        loss[WALLS, p] += removed
+        _book(loss, WALLS, p, removed)
         totals[WALLS] += removed
         w_normal[c] += magnitude
         if friction:
@@ -389,7 +420,7 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
             else:
                 tangential, lost = _friction_spun(v, ang, inv_mass, radius, p, -1, nx, ny, nz,
                                                   magnitude, w_mu[c], planar, spin[p], 0.0)
-            loss[FRICTION, p] += lost
+            _book(loss, FRICTION, p, lost)
             totals[FRICTION] += lost
             w_tangential[c] += tangential
     return any_hit
@@ -399,7 +430,7 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
 def _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w_rest, w_mu,
                  w_impact, struck, use_threshold, threshold, tolerance, strike, friction,
                  planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, first,
-                 spin, accumulate, w_acc, w_acc_impact, w_acc_t):
+                 spin, accumulate, w_acc, w_acc_impact, w_acc_t, w_approach0, strike_speed):
     """Solve every wall plane once, plane after plane; return whether any changed.
 
     On the ``first`` visit each plane's contacts keep the approach speed they
@@ -415,7 +446,7 @@ def _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w
                              w_index, w_axis, w_inward, w_rest, w_mu, w_impact, struck,
                              use_threshold, threshold, tolerance, strike, friction, planar,
                              w_hit, w_normal, w_tangential, loss, totals, spin, accumulate,
-                             w_acc, w_acc_impact, w_acc_t):
+                             w_acc, w_acc_impact, w_acc_t, w_approach0, strike_speed):
             any_hit = True
     return any_hit
 
@@ -450,11 +481,58 @@ def _shock_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order, thre
         v[up, 0] += w * px
         v[up, 1] += w * py
         v[up, 2] += w * pz
-        loss[RESTITUTION, up] += removed
+        _book(loss, RESTITUTION, up, removed)
         totals[RESTITUTION] += removed
         pushed[k] += magnitude
         any_push = True
     return any_push
+
+
+@njit(cache=True)
+def _take_back_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order, acc, pushed,
+                    loss, totals):
+    """Take back resting impulse the sweeps left pushing contacts open; return whether any.
+
+    The counterpart of ``_shock_pass`` for accumulated impulses: warm pushes
+    the sweeps' budget did not finish correcting leave resting contacts
+    opening (a column flies apart by a fraction of g dt). Ground up, the
+    upper particle of a contact that holds resting impulse and opens is
+    slowed along the line of action to the lower one's speed (never below
+    0: it is not pulled down), taking back at most that impulse. Only the
+    upper particle's kinetic energy changes and it only falls; the work is
+    booked as 'restitution'.
+    """
+    any_taken = False
+    for k in shock_order:
+        if not acc[k] > 0.0:
+            continue
+        if i_lower[k]:
+            low, up = pi[k], pj[k]
+            nx, ny, nz = -normal[k, 0], -normal[k, 1], -normal[k, 2]
+        else:
+            low, up = pj[k], pi[k]
+            nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
+        if not dynamic[up]:
+            continue
+        u_upper = _dot(v[up, 0], v[up, 1], v[up, 2], nx, ny, nz)
+        u_lower = _dot(v[low, 0], v[low, 1], v[low, 2], nx, ny, nz)
+        target = max(u_lower, 0.0)
+        if not u_upper > target:
+            continue
+        w = inv_mass[up]
+        magnitude = max((target - u_upper) / w, -acc[k])
+        px, py, pz = magnitude * nx, magnitude * ny, magnitude * nz
+        removed = -(_dot(v[up, 0], v[up, 1], v[up, 2], px, py, pz)
+                    + 0.5 * w * _dot(px, py, pz, px, py, pz))
+        v[up, 0] += w * px
+        v[up, 1] += w * py
+        v[up, 2] += w * pz
+        acc[k] += magnitude
+        _book(loss, RESTITUTION, up, removed)
+        totals[RESTITUTION] += removed
+        pushed[k] += magnitude
+        any_taken = True
+    return any_taken
 
 
 @njit(cache=True)
@@ -546,7 +624,7 @@ def _warm_start(v, ang, inv_mass, radius, pi, pj, normal, mu, impact, acc, acc_t
         change = w_acc[c] * inv_mass[p]
         v[p, axis] += inward * change
         removed = -(w_acc[c] * 0.5 * (-approach + (-approach + change)))
-        loss[WALLS, p] += removed
+        _book(loss, WALLS, p, removed)
         totals[WALLS] += removed
         w_normal[c] += w_acc[c]
         if friction:
@@ -555,7 +633,7 @@ def _warm_start(v, ang, inv_mass, radius, pi, pj, normal, mu, impact, acc, acc_t
             nz = inward if axis == 2 else 0.0
             lost = _warm_tangential(v, ang, inv_mass, radius, p, -1, nx, ny, nz,
                                     w_mu[c] * w_acc[c], planar, spin[p], 0.0, w_acc_t, c)
-            loss[FRICTION, p] += lost
+            _book(loss, FRICTION, p, lost)
             totals[FRICTION] += lost
         else:
             w_acc_t[c, 0] = w_acc_t[c, 1] = w_acc_t[c, 2] = 0.0
@@ -599,13 +677,19 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
     w_impact = np.zeros(w_index.size, dtype=np.bool_)
     acc_impact = np.zeros(m)
     w_acc_impact = np.zeros(w_index.size)
+    # Closing speeds at the solve's start, before any warm push.
+    approach0 = np.zeros(m)
+    w_approach0 = np.zeros(w_index.size)
+    strike_speed = np.zeros(n)
     if use_threshold:
         for k in range(m):
             a, b = pi[k], pj[k]
-            impact[k] = -_dot(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2],
-                              normal[k, 0], normal[k, 1], normal[k, 2]) >= threshold
+            approach0[k] = -_dot(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2],
+                                 normal[k, 0], normal[k, 1], normal[k, 2])
+            impact[k] = approach0[k] >= threshold
         for c in range(w_index.size):
-            w_impact[c] = -w_inward[c] * v[w_index[c], w_axis[c]] >= threshold
+            w_approach0[c] = -w_inward[c] * v[w_index[c], w_axis[c]]
+            w_impact[c] = w_approach0[c] >= threshold
     # No dynamic particle in two pairs and no wall: one sweep resolves every
     # pair (vn' = -e vn >= 0), so a checking sweep is skipped, as for one batch.
     count = np.zeros(n, dtype=np.int64)
@@ -627,17 +711,6 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
     if friction:
         for p in range(n):
             spin[p] = spin_factor(inv_mass, radius, p)
-    if accumulate and (impact.any() or w_impact.any()):
-        # An impact in this solve: the law's solve as without accumulation.
-        # Warm pushes are transients (a column's bottom contact carries the
-        # weight of all above it); where a threshold decides e per visit they
-        # turned into elastic bounces and added energy (test_hard_cases
-        # case 7, e = 1), so only a solve of resting contact accumulates.
-        accumulate = False
-        acc[:] = 0.0
-        acc_t[:] = 0.0
-        w_acc[:] = 0.0
-        w_acc_t[:] = 0.0
     if accumulate:
         _warm_start(v, ang, inv_mass, radius, pi, pj, normal, mu, impact, acc, acc_t, share,
                     w_index, w_axis, w_inward, w_mu, w_impact, w_acc, w_acc_t, friction,
@@ -658,16 +731,35 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                 if use_threshold:
                     if not (approach >= threshold and (impact[k] or struck[a] or struck[b])):
                         e = 0.0
-                magnitude, removed = _apply_pair(v, inv_mass, a, b, nx, ny, nz, e, approach)
-                if use_threshold and e > 0.0 and approach >= strike * threshold:
+                bounce = approach
+                if accumulate and e > 0.0:
+                    # The target is fixed at the solve's start: a bounce
+                    # reflects at most the closing speed of its impact (at
+                    # the start, or the one that struck a or b), never what
+                    # warm pushes added since.
+                    cap = approach0[k] if impact[k] else 0.0
+                    if struck[a]:
+                        cap = max(cap, strike_speed[a])
+                    if struck[b]:
+                        cap = max(cap, strike_speed[b])
+                    bounce = min(approach, cap)
+                if bounce < approach:
+                    magnitude = (approach + e * bounce) / (inv_mass[a] + inv_mass[b])
+                    removed = _push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
+                else:
+                    magnitude, removed = _apply_pair(v, inv_mass, a, b, nx, ny, nz, e,
+                                                     approach)
+                if use_threshold and e > 0.0 and bounce >= strike * threshold:
                     # A static particle never moves, so it passes no shock on.
                     struck[a] = dynamic[a]
                     struck[b] = dynamic[b]
+                    strike_speed[a] = max(strike_speed[a], bounce)
+                    strike_speed[b] = max(strike_speed[b], bounce)
                 hit[k] = True
                 if accumulate:
                     # Closing faster than the threshold: an impact's impulse,
                     # never taken back or cached; slower: resting.
-                    if approach >= threshold:
+                    if impact[k] or e > 0.0:
                         acc_impact[k] += magnitude
                     else:
                         acc[k] += magnitude
@@ -705,7 +797,8 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                             w_rest, w_mu, w_impact, struck, use_threshold, threshold,
                             tolerance, strike, friction, planar, w_hit, w_normal,
                             w_tangential, loss, totals, w_approach, first_wall_visit, spin,
-                            accumulate, w_acc, w_acc_impact, w_acc_t):
+                            accumulate, w_acc, w_acc_impact, w_acc_t, w_approach0,
+                            strike_speed):
                 applied = True
             first_wall_visit = False
         if not applied or single:
@@ -714,16 +807,20 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
         _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w_rest,
                      w_mu, w_impact, struck, use_threshold, threshold, 0.0, strike, friction,
                      planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, False,
-                     spin, accumulate, w_acc, w_acc_impact, w_acc_t)
+                     spin, accumulate, w_acc, w_acc_impact, w_acc_t, w_approach0, strike_speed)
         for _ in range(shock_passes):
+            taken = False
+            if accumulate:
+                taken = _take_back_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower,
+                                        shock_order, acc, summed_normal, loss, totals)
             pushed = _shock_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order,
                                  threshold, summed_normal, loss, totals)
             _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward,
                          w_rest, w_mu, w_impact, struck, use_threshold, threshold, 0.0,
                          strike, friction, planar, w_hit, w_normal, w_tangential, loss,
                          totals, w_approach, False, spin, accumulate, w_acc, w_acc_impact,
-                         w_acc_t)
-            if not pushed:
+                         w_acc_t, w_approach0, strike_speed)
+            if not pushed and not taken:
                 break
     return sweeps
 
@@ -980,7 +1077,7 @@ def _warm_up() -> None:
                    np.zeros(1, dtype=np.int64), one, one, one, True, 0.1, 1e-4, 10.0, 4,
                    True, True, np.zeros(1, dtype=np.int64), np.zeros(1, dtype=bool), 2,
                    np.zeros(1, dtype=bool), np.zeros(1), np.zeros(1), np.zeros(1, dtype=bool),
-                   np.zeros(1), np.zeros(1), np.zeros(1), np.zeros((3, 2)), np.zeros(3),
+                   np.zeros(1), np.zeros(1), np.zeros(1), np.zeros((4, 2)), np.zeros(3),
                    True, np.ones(1), np.ones((1, 3)), np.ones(1), np.ones((1, 3)))
     greedy_colors(pi, pj, dynamic, 32)
     # Narrowphase and separation (a pair 1.9 m apart with radii 1 m overlaps).
