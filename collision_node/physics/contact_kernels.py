@@ -347,17 +347,15 @@ def _friction_vector(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse,
 def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_inward,
                       w_rest, w_mu, w_impact, struck, use_threshold, threshold, tolerance,
                       strike, friction, planar, w_hit, w_normal, w_tangential, loss, totals,
-                      spin, accumulate, w_acc, w_acc_impact, w_acc_t, w_approach0,
-                      strike_speed):
+                      spin, accumulate, w_acc, w_acc_impact, w_acc_t, warm_dv, warmed):
     """Solve one wall plane's contacts (distinct particles); return whether any changed.
 
     ``spin``: each particle's ``spin_factor`` (used with friction only).
     With ``accumulate`` the resting impulse of each contact is accumulated
     (``w_acc``) and may be taken back down to 0 when the particle leaves the
     plane (see ``solve_contacts``); impact impulses go to ``w_acc_impact``,
-    and a bounce reflects at most the closing speed its impact had
-    (``_bounce_cap``: ``w_approach0`` at the solve's start, ``strike_speed``
-    for a struck particle).
+    and a bounce never reflects the closing speed that warm pushes added
+    (``warm_dv``, the velocity change of each ``warmed`` particle).
     """
     any_hit = False
     for c in range(start, stop):
@@ -370,11 +368,8 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
         approach = -inward * v[p, axis]
         if approach > tolerance:
             bounce = approach
-            if accumulate and e > 0.0:
-                cap = w_approach0[c] if w_impact[c] else 0.0
-                if struck[p]:
-                    cap = max(cap, strike_speed[p])
-                bounce = min(approach, cap)
+            if accumulate and e > 0.0 and warmed[p]:
+                bounce = min(approach, max(approach + inward * warm_dv[p, axis], 0.0))
             if bounce < approach:
                 change = approach + e * bounce
                 v[p, axis] += inward * change
@@ -387,7 +382,6 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
                 removed = 0.5 * magnitude * approach * (1.0 - e)
             if use_threshold and e > 0.0 and bounce >= strike * threshold:
                 struck[p] = True
-                strike_speed[p] = max(strike_speed[p], bounce)
             w_hit[c] = True
             if accumulate:
                 if w_impact[c] or e > 0.0:
@@ -430,7 +424,7 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
 def _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w_rest, w_mu,
                  w_impact, struck, use_threshold, threshold, tolerance, strike, friction,
                  planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, first,
-                 spin, accumulate, w_acc, w_acc_impact, w_acc_t, w_approach0, strike_speed):
+                 spin, accumulate, w_acc, w_acc_impact, w_acc_t, warm_dv, warmed):
     """Solve every wall plane once, plane after plane; return whether any changed.
 
     On the ``first`` visit each plane's contacts keep the approach speed they
@@ -446,7 +440,7 @@ def _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w
                              w_index, w_axis, w_inward, w_rest, w_mu, w_impact, struck,
                              use_threshold, threshold, tolerance, strike, friction, planar,
                              w_hit, w_normal, w_tangential, loss, totals, spin, accumulate,
-                             w_acc, w_acc_impact, w_acc_t, w_approach0, strike_speed):
+                             w_acc, w_acc_impact, w_acc_t, warm_dv, warmed):
             any_hit = True
     return any_hit
 
@@ -677,19 +671,13 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
     w_impact = np.zeros(w_index.size, dtype=np.bool_)
     acc_impact = np.zeros(m)
     w_acc_impact = np.zeros(w_index.size)
-    # Closing speeds at the solve's start, before any warm push.
-    approach0 = np.zeros(m)
-    w_approach0 = np.zeros(w_index.size)
-    strike_speed = np.zeros(n)
     if use_threshold:
         for k in range(m):
             a, b = pi[k], pj[k]
-            approach0[k] = -_dot(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2],
-                                 normal[k, 0], normal[k, 1], normal[k, 2])
-            impact[k] = approach0[k] >= threshold
+            impact[k] = -_dot(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2],
+                              normal[k, 0], normal[k, 1], normal[k, 2]) >= threshold
         for c in range(w_index.size):
-            w_approach0[c] = -w_inward[c] * v[w_index[c], w_axis[c]]
-            w_impact[c] = w_approach0[c] >= threshold
+            w_impact[c] = -w_inward[c] * v[w_index[c], w_axis[c]] >= threshold
     # No dynamic particle in two pairs and no wall: one sweep resolves every
     # pair (vn' = -e vn >= 0), so a checking sweep is skipped, as for one batch.
     count = np.zeros(n, dtype=np.int64)
@@ -711,10 +699,20 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
     if friction:
         for p in range(n):
             spin[p] = spin_factor(inv_mass, radius, p)
+    warm_dv = np.zeros((n if accumulate else 0, 3))
+    warmed = np.zeros(n if accumulate else 0, dtype=np.bool_)
     if accumulate:
+        for p in range(n):
+            warm_dv[p, 0], warm_dv[p, 1], warm_dv[p, 2] = v[p, 0], v[p, 1], v[p, 2]
         _warm_start(v, ang, inv_mass, radius, pi, pj, normal, mu, impact, acc, acc_t, share,
                     w_index, w_axis, w_inward, w_mu, w_impact, w_acc, w_acc_t, friction,
                     planar, spin, summed_normal, w_normal, loss, totals)
+        # What the warm pushes changed, per particle.
+        for p in range(n):
+            for d in range(3):
+                warm_dv[p, d] = v[p, d] - warm_dv[p, d]
+                if warm_dv[p, d] != 0.0:
+                    warmed[p] = True
     sweeps = 0
     for _ in range(iterations):
         sweeps += 1
@@ -732,17 +730,13 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                     if not (approach >= threshold and (impact[k] or struck[a] or struck[b])):
                         e = 0.0
                 bounce = approach
-                if accumulate and e > 0.0:
-                    # The target is fixed at the solve's start: a bounce
-                    # reflects at most the closing speed of its impact (at
-                    # the start, or the one that struck a or b), never what
-                    # warm pushes added since.
-                    cap = approach0[k] if impact[k] else 0.0
-                    if struck[a]:
-                        cap = max(cap, strike_speed[a])
-                    if struck[b]:
-                        cap = max(cap, strike_speed[b])
-                    bounce = min(approach, cap)
+                if accumulate and e > 0.0 and (warmed[a] or warmed[b]):
+                    # A bounce reflects the closing speed the impacts made,
+                    # never what the warm pushes added to it: with e = 1 that
+                    # excess would leave at full speed and add energy.
+                    bounce = min(approach, max(approach + _dot(
+                        warm_dv[a, 0] - warm_dv[b, 0], warm_dv[a, 1] - warm_dv[b, 1],
+                        warm_dv[a, 2] - warm_dv[b, 2], nx, ny, nz), 0.0))
                 if bounce < approach:
                     magnitude = (approach + e * bounce) / (inv_mass[a] + inv_mass[b])
                     removed = _push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
@@ -753,8 +747,6 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                     # A static particle never moves, so it passes no shock on.
                     struck[a] = dynamic[a]
                     struck[b] = dynamic[b]
-                    strike_speed[a] = max(strike_speed[a], bounce)
-                    strike_speed[b] = max(strike_speed[b], bounce)
                 hit[k] = True
                 if accumulate:
                     # Closing faster than the threshold: an impact's impulse,
@@ -797,8 +789,7 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                             w_rest, w_mu, w_impact, struck, use_threshold, threshold,
                             tolerance, strike, friction, planar, w_hit, w_normal,
                             w_tangential, loss, totals, w_approach, first_wall_visit, spin,
-                            accumulate, w_acc, w_acc_impact, w_acc_t, w_approach0,
-                            strike_speed):
+                            accumulate, w_acc, w_acc_impact, w_acc_t, warm_dv, warmed):
                 applied = True
             first_wall_visit = False
         if not applied or single:
@@ -807,7 +798,7 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
         _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w_rest,
                      w_mu, w_impact, struck, use_threshold, threshold, 0.0, strike, friction,
                      planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, False,
-                     spin, accumulate, w_acc, w_acc_impact, w_acc_t, w_approach0, strike_speed)
+                     spin, accumulate, w_acc, w_acc_impact, w_acc_t, warm_dv, warmed)
         for _ in range(shock_passes):
             taken = False
             if accumulate:
@@ -819,7 +810,7 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                          w_rest, w_mu, w_impact, struck, use_threshold, threshold, 0.0,
                          strike, friction, planar, w_hit, w_normal, w_tangential, loss,
                          totals, w_approach, False, spin, accumulate, w_acc, w_acc_impact,
-                         w_acc_t, w_approach0, strike_speed)
+                         w_acc_t, warm_dv, warmed)
             if not pushed and not taken:
                 break
     return sweeps
