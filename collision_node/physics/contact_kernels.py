@@ -388,9 +388,11 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
                     w_acc_impact[c] += magnitude
                 else:
                     w_acc[c] += magnitude
-        elif accumulate and approach < 0.0 and w_acc[c] > 0.0:
+        elif accumulate and approach < -tolerance and w_acc[c] > 0.0:
             # Leaving the plane with resting impulse to give back: take back
-            # what stops it leaving, at most the accumulated impulse.
+            # what stops it leaving, at most the accumulated impulse (beyond
+            # the tolerance, as an approach; the shock stage's wall visits
+            # run at tolerance 0 and take back every leaving).
             magnitude = max(approach / inv_mass[p], -w_acc[c])
             change = magnitude * inv_mass[p]
             v[p, axis] += inward * change
@@ -398,8 +400,7 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
             w_acc[c] += magnitude
         else:
             continue
-        if approach > tolerance or approach < -tolerance:
-            any_hit = True
+        any_hit = True
         _book(loss, WALLS, p, removed)
         totals[WALLS] += removed
         w_normal[c] += magnitude
@@ -480,6 +481,31 @@ def _shock_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order, thre
         pushed[k] += magnitude
         any_push = True
     return any_push
+
+
+@njit(cache=True)
+def _take_back_pairs(v, inv_mass, pi, pj, normal, order, acc, share, summed_normal, loss,
+                     totals):
+    """One pass in ``order`` taking back the resting impulse of every opening pair.
+
+    The sweeps take back only beyond the tolerance; this leaves no pair
+    opening under a resting impulse it holds (momentum conserved, the work
+    booked as 'restitution').
+    """
+    for k in order:
+        if not acc[k] > 0.0:
+            continue
+        a, b = pi[k], pj[k]
+        nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
+        approach = -_dot(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2], nx, ny, nz)
+        if not approach < 0.0:
+            continue
+        magnitude = max(approach / (inv_mass[a] + inv_mass[b]), -acc[k])
+        removed = _push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
+        acc[k] += magnitude
+        _book_pair(loss, RESTITUTION, a, b, removed, share[k])
+        totals[RESTITUTION] += removed
+        summed_normal[k] += magnitude
 
 
 @njit(cache=True)
@@ -755,20 +781,18 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                         acc_impact[k] += magnitude
                     else:
                         acc[k] += magnitude
-            elif accumulate and approach < 0.0 and acc[k] > 0.0:
+            elif accumulate and approach < -tolerance and acc[k] > 0.0:
                 # Opening with resting impulse to give back (e.g. from the warm
-                # start): take back what stops it opening, at most all of it
-                # (every opening, so no warm push is left over; only one
-                # beyond the tolerance asks for another sweep).
+                # start): take back what stops it opening, at most all of it.
+                # Beyond the tolerance only, as an approach: a converged
+                # contact costs a dot product per sweep; ``_take_back_pairs``
+                # takes back what is left below it after the sweeps.
                 magnitude = max(approach / (inv_mass[a] + inv_mass[b]), -acc[k])
                 removed = _push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
                 acc[k] += magnitude
-                if approach < -tolerance:
-                    applied = True
             else:
                 continue
-            if approach > tolerance:
-                applied = True
+            applied = True
             _book_pair(loss, RESTITUTION, a, b, removed, share[k])
             totals[RESTITUTION] += removed
             summed_normal[k] += magnitude
@@ -794,6 +818,9 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
             first_wall_visit = False
         if not applied or single:
             break
+    if accumulate:
+        _take_back_pairs(v, inv_mass, pi, pj, normal, order, acc, share, summed_normal, loss,
+                         totals)
     if shock_order.size:
         _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w_rest,
                      w_mu, w_impact, struck, use_threshold, threshold, 0.0, strike, friction,
