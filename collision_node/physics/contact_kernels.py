@@ -685,10 +685,15 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
     impulse taken back, down to 0. On entry ``acc`` / ``acc_t`` (and the
     wall arrays) hold the previous step's values for contacts that persist
     (warm start, applied first to contacts that are not new impacts); on
-    return, this solve's. Impact impulses (e > 0, the threshold's 'struck'
-    rule, and any impulse on a contact closing faster than the threshold) are
-    the law's, unchanged, never taken back and not cached. A warm impulse
-    is not counted in ``hit`` (no collision).
+    return, this solve's. Each contact's class is fixed at the start: one
+    closing faster than the threshold before any warm push is an impact for
+    the whole solve (its impulses, and any with e > 0 by the 'struck' rule,
+    are the law's, never taken back and not cached); every other contact is
+    resting, whatever a warm push makes it do. A bounce never reflects the
+    closing speed warm pushes added (``warm_dv``). Resting impulse left
+    pushing an opening contact after the sweeps is taken back
+    (``_take_back_pairs``, and ``_take_back_pass`` beside the shock passes).
+    A warm impulse is not counted in ``hit`` (no collision).
     """
     n = v.shape[0]
     m = pi.size
