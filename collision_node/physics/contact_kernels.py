@@ -33,6 +33,11 @@ STICK_FACTOR = 1.0 + SPIN_FACTOR
 # Rows of the per-particle loss array the solve returns.
 RESTITUTION, WALLS, FRICTION = 0, 1, 2
 EFFECTS = ('restitution', 'walls', 'friction')
+# The last row sums every booking per particle in the order it happens,
+# starting from the step's losses so far: the same additions in the same
+# order as ``StepContext.book`` makes them in the numpy reference, so the
+# separation stage's budget is bit for bit the reference's.
+BOOKED = len(EFFECTS)
 
 
 @njit(cache=True, inline='always')
@@ -158,7 +163,16 @@ def _share(inv_mass, a, b):
 def _book_pair(loss, effect, a, b, removed, share):
     """Book a pair's loss to its particles, a taking ``share`` (``_share``)."""
     loss[effect, a] += removed * share
+    loss[BOOKED, a] += removed * share
     loss[effect, b] += removed * (1.0 - share)
+    loss[BOOKED, b] += removed * (1.0 - share)
+
+
+@njit(cache=True, inline='always')
+def _book(loss, effect, p, removed):
+    """Book a loss to particle ``p``."""
+    loss[effect, p] += removed
+    loss[BOOKED, p] += removed
 
 
 @njit(cache=True)
@@ -310,13 +324,15 @@ def _friction_vector(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse,
 def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_inward,
                       w_rest, w_mu, w_impact, struck, use_threshold, threshold, tolerance,
                       strike, friction, planar, w_hit, w_normal, w_tangential, loss, totals,
-                      spin, accumulate, w_acc, w_acc_impact, w_acc_t):
+                      spin, accumulate, w_acc, w_acc_impact, w_acc_t, warm_dv, warmed):
     """Solve one wall plane's contacts (distinct particles); return whether any changed.
 
     ``spin``: each particle's ``spin_factor`` (used with friction only).
     With ``accumulate`` the resting impulse of each contact is accumulated
     (``w_acc``) and may be taken back down to 0 when the particle leaves the
-    plane (see ``solve_contacts``); impact impulses go to ``w_acc_impact``.
+    plane (see ``solve_contacts``); impact impulses go to ``w_acc_impact``,
+    and a bounce never reflects the closing speed that warm pushes added
+    (``warm_dv``, the velocity change of each ``warmed`` particle).
     """
     any_hit = False
     for c in range(start, stop):
@@ -328,21 +344,32 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
                 e = 0.0
         approach = -inward * v[p, axis]
         if approach > tolerance:
-            change = (1.0 + e) * approach
-            v[p, axis] += inward * change
-            magnitude = change / inv_mass[p]
-            removed = 0.5 * magnitude * approach * (1.0 - e)
-            if use_threshold and e > 0.0 and approach >= strike * threshold:
+            bounce = approach
+            if accumulate and e > 0.0 and warmed[p]:
+                bounce = min(approach, max(approach + inward * warm_dv[p, axis], 0.0))
+            if bounce < approach:
+                change = approach + e * bounce
+                v[p, axis] += inward * change
+                magnitude = change / inv_mass[p]
+                removed = 0.5 * magnitude * (approach - e * bounce)
+            else:
+                change = (1.0 + e) * approach
+                v[p, axis] += inward * change
+                magnitude = change / inv_mass[p]
+                removed = 0.5 * magnitude * approach * (1.0 - e)
+            if use_threshold and e > 0.0 and bounce >= strike * threshold:
                 struck[p] = True
             w_hit[c] = True
             if accumulate:
-                if approach >= threshold:
+                if w_impact[c] or e > 0.0:
                     w_acc_impact[c] += magnitude
                 else:
                     w_acc[c] += magnitude
-        elif accumulate and approach < 0.0 and w_acc[c] > 0.0:
+        elif accumulate and approach < -tolerance and w_acc[c] > 0.0:
             # Leaving the plane with resting impulse to give back: take back
-            # what stops it leaving, at most the accumulated impulse.
+            # what stops it leaving, at most the accumulated impulse (beyond
+            # the tolerance, as an approach; the shock stage's wall visits
+            # run at tolerance 0 and take back every leaving).
             magnitude = max(approach / inv_mass[p], -w_acc[c])
             change = magnitude * inv_mass[p]
             v[p, axis] += inward * change
@@ -350,9 +377,8 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
             w_acc[c] += magnitude
         else:
             continue
-        if approach > tolerance or approach < -tolerance:
-            any_hit = True
-        loss[WALLS, p] += removed
+        any_hit = True
+        _book(loss, WALLS, p, removed)
         totals[WALLS] += removed
         w_normal[c] += magnitude
         if friction:
@@ -366,7 +392,7 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
             else:
                 tangential, lost = _friction_spun(v, ang, inv_mass, radius, p, -1, nx, ny, nz,
                                                   magnitude, w_mu[c], planar, spin[p], 0.0)
-            loss[FRICTION, p] += lost
+            _book(loss, FRICTION, p, lost)
             totals[FRICTION] += lost
             w_tangential[c] += tangential
     return any_hit
@@ -376,7 +402,7 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
 def _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w_rest, w_mu,
                  w_impact, struck, use_threshold, threshold, tolerance, strike, friction,
                  planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, first,
-                 spin, accumulate, w_acc, w_acc_impact, w_acc_t):
+                 spin, accumulate, w_acc, w_acc_impact, w_acc_t, warm_dv, warmed):
     """Solve every wall plane once, plane after plane; return whether any changed.
 
     On the ``first`` visit each plane's contacts keep the approach speed they
@@ -392,7 +418,7 @@ def _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w
                              w_index, w_axis, w_inward, w_rest, w_mu, w_impact, struck,
                              use_threshold, threshold, tolerance, strike, friction, planar,
                              w_hit, w_normal, w_tangential, loss, totals, spin, accumulate,
-                             w_acc, w_acc_impact, w_acc_t):
+                             w_acc, w_acc_impact, w_acc_t, warm_dv, warmed):
             any_hit = True
     return any_hit
 
@@ -427,11 +453,83 @@ def _shock_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order, thre
         v[up, 0] += w * px
         v[up, 1] += w * py
         v[up, 2] += w * pz
-        loss[RESTITUTION, up] += removed
+        _book(loss, RESTITUTION, up, removed)
         totals[RESTITUTION] += removed
         pushed[k] += magnitude
         any_push = True
     return any_push
+
+
+@njit(cache=True)
+def _take_back_pairs(v, inv_mass, pi, pj, normal, order, acc, share, summed_normal, loss,
+                     totals):
+    """One pass in ``order`` taking back the resting impulse of every opening pair.
+
+    The sweeps take back only beyond the tolerance; this leaves no pair
+    opening under a resting impulse it holds (momentum conserved, the work
+    booked as 'restitution').
+    """
+    for k in order:
+        if not acc[k] > 0.0:
+            continue
+        a, b = pi[k], pj[k]
+        nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
+        approach = -_dot(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2], nx, ny, nz)
+        if not approach < 0.0:
+            continue
+        magnitude = max(approach / (inv_mass[a] + inv_mass[b]), -acc[k])
+        removed = _push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
+        acc[k] += magnitude
+        _book_pair(loss, RESTITUTION, a, b, removed, share[k])
+        totals[RESTITUTION] += removed
+        summed_normal[k] += magnitude
+
+
+@njit(cache=True)
+def _take_back_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order, acc, pushed,
+                    loss, totals):
+    """Take back resting impulse the sweeps left pushing contacts open; return whether any.
+
+    The counterpart of ``_shock_pass`` for accumulated impulses: warm pushes
+    the sweeps' budget did not finish correcting leave resting contacts
+    opening (a column flies apart by a fraction of g dt). Ground up, the
+    upper particle of a contact that holds resting impulse and opens is
+    slowed along the line of action to the lower one's speed (never below
+    0: it is not pulled down), taking back at most that impulse. Only the
+    upper particle's kinetic energy changes and it only falls; the work is
+    booked as 'restitution'.
+    """
+    any_taken = False
+    for k in shock_order:
+        if not acc[k] > 0.0:
+            continue
+        if i_lower[k]:
+            low, up = pi[k], pj[k]
+            nx, ny, nz = -normal[k, 0], -normal[k, 1], -normal[k, 2]
+        else:
+            low, up = pj[k], pi[k]
+            nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
+        if not dynamic[up]:
+            continue
+        u_upper = _dot(v[up, 0], v[up, 1], v[up, 2], nx, ny, nz)
+        u_lower = _dot(v[low, 0], v[low, 1], v[low, 2], nx, ny, nz)
+        target = max(u_lower, 0.0)
+        if not u_upper > target:
+            continue
+        w = inv_mass[up]
+        magnitude = max((target - u_upper) / w, -acc[k])
+        px, py, pz = magnitude * nx, magnitude * ny, magnitude * nz
+        removed = -(_dot(v[up, 0], v[up, 1], v[up, 2], px, py, pz)
+                    + 0.5 * w * _dot(px, py, pz, px, py, pz))
+        v[up, 0] += w * px
+        v[up, 1] += w * py
+        v[up, 2] += w * pz
+        acc[k] += magnitude
+        _book(loss, RESTITUTION, up, removed)
+        totals[RESTITUTION] += removed
+        pushed[k] += magnitude
+        any_taken = True
+    return any_taken
 
 
 @njit(cache=True)
@@ -523,7 +621,7 @@ def _warm_start(v, ang, inv_mass, radius, pi, pj, normal, mu, impact, acc, acc_t
         change = w_acc[c] * inv_mass[p]
         v[p, axis] += inward * change
         removed = -(w_acc[c] * 0.5 * (-approach + (-approach + change)))
-        loss[WALLS, p] += removed
+        _book(loss, WALLS, p, removed)
         totals[WALLS] += removed
         w_normal[c] += w_acc[c]
         if friction:
@@ -532,7 +630,7 @@ def _warm_start(v, ang, inv_mass, radius, pi, pj, normal, mu, impact, acc, acc_t
             nz = inward if axis == 2 else 0.0
             lost = _warm_tangential(v, ang, inv_mass, radius, p, -1, nx, ny, nz,
                                     w_mu[c] * w_acc[c], planar, spin[p], 0.0, w_acc_t, c)
-            loss[FRICTION, p] += lost
+            _book(loss, FRICTION, p, lost)
             totals[FRICTION] += lost
         else:
             w_acc_t[c, 0] = w_acc_t[c, 1] = w_acc_t[c, 2] = 0.0
@@ -564,10 +662,15 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
     impulse taken back, down to 0. On entry ``acc`` / ``acc_t`` (and the
     wall arrays) hold the previous step's values for contacts that persist
     (warm start, applied first to contacts that are not new impacts); on
-    return, this solve's. Impact impulses (e > 0, the threshold's 'struck'
-    rule, and any impulse on a contact closing faster than the threshold) are
-    the law's, unchanged, never taken back and not cached. A warm impulse
-    is not counted in ``hit`` (no collision).
+    return, this solve's. Each contact's class is fixed at the start: one
+    closing faster than the threshold before any warm push is an impact for
+    the whole solve (its impulses, and any with e > 0 by the 'struck' rule,
+    are the law's, never taken back and not cached); every other contact is
+    resting, whatever a warm push makes it do. A bounce never reflects the
+    closing speed warm pushes added (``warm_dv``). Resting impulse left
+    pushing an opening contact after the sweeps is taken back
+    (``_take_back_pairs``, and ``_take_back_pass`` beside the shock passes).
+    A warm impulse is not counted in ``hit`` (no collision).
     """
     n = v.shape[0]
     m = pi.size
@@ -604,21 +707,20 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
     if friction:
         for p in range(n):
             spin[p] = spin_factor(inv_mass, radius, p)
-    if accumulate and (impact.any() or w_impact.any()):
-        # An impact in this solve: the law's solve as without accumulation.
-        # Warm pushes are transients (a column's bottom contact carries the
-        # weight of all above it); where a threshold decides e per visit they
-        # turned into elastic bounces and added energy (test_hard_cases
-        # case 7, e = 1), so only a solve of resting contact accumulates.
-        accumulate = False
-        acc[:] = 0.0
-        acc_t[:] = 0.0
-        w_acc[:] = 0.0
-        w_acc_t[:] = 0.0
+    warm_dv = np.zeros((n if accumulate else 0, 3))
+    warmed = np.zeros(n if accumulate else 0, dtype=np.bool_)
     if accumulate:
+        for p in range(n):
+            warm_dv[p, 0], warm_dv[p, 1], warm_dv[p, 2] = v[p, 0], v[p, 1], v[p, 2]
         _warm_start(v, ang, inv_mass, radius, pi, pj, normal, mu, impact, acc, acc_t, share,
                     w_index, w_axis, w_inward, w_mu, w_impact, w_acc, w_acc_t, friction,
                     planar, spin, summed_normal, w_normal, loss, totals)
+        # What the warm pushes changed, per particle.
+        for p in range(n):
+            for d in range(3):
+                warm_dv[p, d] = v[p, d] - warm_dv[p, d]
+                if warm_dv[p, d] != 0.0:
+                    warmed[p] = True
     sweeps = 0
     for _ in range(iterations):
         sweeps += 1
@@ -635,8 +737,21 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                 if use_threshold:
                     if not (approach >= threshold and (impact[k] or struck[a] or struck[b])):
                         e = 0.0
-                magnitude, removed = _apply_pair(v, inv_mass, a, b, nx, ny, nz, e, approach)
-                if use_threshold and e > 0.0 and approach >= strike * threshold:
+                bounce = approach
+                if accumulate and e > 0.0 and (warmed[a] or warmed[b]):
+                    # A bounce reflects the closing speed the impacts made,
+                    # never what the warm pushes added to it: with e = 1 that
+                    # excess would leave at full speed and add energy.
+                    bounce = min(approach, max(approach + _dot(
+                        warm_dv[a, 0] - warm_dv[b, 0], warm_dv[a, 1] - warm_dv[b, 1],
+                        warm_dv[a, 2] - warm_dv[b, 2], nx, ny, nz), 0.0))
+                if bounce < approach:
+                    magnitude = (approach + e * bounce) / (inv_mass[a] + inv_mass[b])
+                    removed = _push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
+                else:
+                    magnitude, removed = _apply_pair(v, inv_mass, a, b, nx, ny, nz, e,
+                                                     approach)
+                if use_threshold and e > 0.0 and bounce >= strike * threshold:
                     # A static particle never moves, so it passes no shock on.
                     struck[a] = dynamic[a]
                     struck[b] = dynamic[b]
@@ -644,24 +759,22 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                 if accumulate:
                     # Closing faster than the threshold: an impact's impulse,
                     # never taken back or cached; slower: resting.
-                    if approach >= threshold:
+                    if impact[k] or e > 0.0:
                         acc_impact[k] += magnitude
                     else:
                         acc[k] += magnitude
-            elif accumulate and approach < 0.0 and acc[k] > 0.0:
+            elif accumulate and approach < -tolerance and acc[k] > 0.0:
                 # Opening with resting impulse to give back (e.g. from the warm
-                # start): take back what stops it opening, at most all of it
-                # (every opening, so no warm push is left over; only one
-                # beyond the tolerance asks for another sweep).
+                # start): take back what stops it opening, at most all of it.
+                # Beyond the tolerance only, as an approach: a converged
+                # contact costs a dot product per sweep; ``_take_back_pairs``
+                # takes back what is left below it after the sweeps.
                 magnitude = max(approach / (inv_mass[a] + inv_mass[b]), -acc[k])
                 removed = _push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
                 acc[k] += magnitude
-                if approach < -tolerance:
-                    applied = True
             else:
                 continue
-            if approach > tolerance:
-                applied = True
+            applied = True
             _book_pair(loss, RESTITUTION, a, b, removed, share[k])
             totals[RESTITUTION] += removed
             summed_normal[k] += magnitude
@@ -682,25 +795,32 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                             w_rest, w_mu, w_impact, struck, use_threshold, threshold,
                             tolerance, strike, friction, planar, w_hit, w_normal,
                             w_tangential, loss, totals, w_approach, first_wall_visit, spin,
-                            accumulate, w_acc, w_acc_impact, w_acc_t):
+                            accumulate, w_acc, w_acc_impact, w_acc_t, warm_dv, warmed):
                 applied = True
             first_wall_visit = False
         if not applied or single:
             break
+    if accumulate:
+        _take_back_pairs(v, inv_mass, pi, pj, normal, order, acc, share, summed_normal, loss,
+                         totals)
     if shock_order.size:
         _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w_rest,
                      w_mu, w_impact, struck, use_threshold, threshold, 0.0, strike, friction,
                      planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, False,
-                     spin, accumulate, w_acc, w_acc_impact, w_acc_t)
+                     spin, accumulate, w_acc, w_acc_impact, w_acc_t, warm_dv, warmed)
         for _ in range(shock_passes):
+            taken = False
+            if accumulate:
+                taken = _take_back_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower,
+                                        shock_order, acc, summed_normal, loss, totals)
             pushed = _shock_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order,
                                  threshold, summed_normal, loss, totals)
             _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward,
                          w_rest, w_mu, w_impact, struck, use_threshold, threshold, 0.0,
                          strike, friction, planar, w_hit, w_normal, w_tangential, loss,
                          totals, w_approach, False, spin, accumulate, w_acc, w_acc_impact,
-                         w_acc_t)
-            if not pushed:
+                         w_acc_t, warm_dv, warmed)
+            if not pushed and not taken:
                 break
     return sweeps
 
@@ -957,7 +1077,7 @@ def warm_up() -> None:
                    np.zeros(1, dtype=np.int64), one, one, one, True, 0.1, 1e-4, 10.0, 4,
                    True, True, np.zeros(1, dtype=np.int64), np.zeros(1, dtype=bool), 2,
                    np.zeros(1, dtype=bool), np.zeros(1), np.zeros(1), np.zeros(1, dtype=bool),
-                   np.zeros(1), np.zeros(1), np.zeros(1), np.zeros((3, 2)), np.zeros(3),
+                   np.zeros(1), np.zeros(1), np.zeros(1), np.zeros((4, 2)), np.zeros(3),
                    True, np.ones(1), np.ones((1, 3)), np.ones(1), np.ones((1, 3)))
     greedy_colors(pi, pj, dynamic, 32)
     # Narrowphase and separation (a pair 1.9 m apart with radii 1 m overlaps).

@@ -57,7 +57,7 @@ from typing import Optional
 import numpy as np
 
 from .. import coloring
-from ..contact_kernels import EFFECTS, FRICTION, RESTITUTION, WALLS, solve_contacts
+from ..contact_kernels import BOOKED, EFFECTS, FRICTION, RESTITUTION, WALLS, solve_contacts
 from ..contact_law import (apply_impulses, apply_pair_friction, apply_pair_impulses,
                            apply_wall_friction, apply_wall_impulses, pair_coefficient,
                            record_pairs, record_walls, wall_coefficient)
@@ -445,7 +445,9 @@ class SequentialImpulseStage(Stage):
         summed_normal, summed_tangential = np.zeros(m), np.zeros(m)
         w_hit = np.zeros(k, dtype=bool)
         w_normal, w_tangential, w_approach = np.zeros(k), np.zeros(k), np.zeros(k)
-        loss = np.zeros((len(EFFECTS), n))
+        loss = np.zeros((len(EFFECTS) + 1, n))
+        if ctx.losses is not None:
+            loss[BOOKED] = ctx.losses
         totals = np.zeros(len(EFFECTS))
         accumulate = self.warm_start and threshold > 0.0
         ids = state.ids
@@ -481,8 +483,8 @@ class SequentialImpulseStage(Stage):
             effects.append((FRICTION, 'friction'))
         for row, effect in effects:
             ctx.stats.add_dissipated(effect, float(totals[row]))
-            if ctx.losses is not None:
-                ctx.losses += loss[row]
+        if ctx.losses is not None:
+            ctx.losses[...] = loss[BOOKED]
         ctx.stats.collisions += int(hit.sum())
         ctx.stats.wall_collisions += int(w_hit.sum())
         if record:
