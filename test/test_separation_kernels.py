@@ -167,7 +167,9 @@ def test_compiled_separation_holds_particles_at_walls_like_numpy():
 def test_compiled_stages_equal_numpy_at_every_step_of_the_pile():
     # The shipped pile poured and settling (fast): at every step both backends of the
     # narrowphase and the separation run on the same context and must agree.
-    world = World(load_scene('pile').with_accuracy(parse_accuracy('fast', 'test')))
+    # Sleeping off: a sleeping pile skips its stages, and every step is compared.
+    world = World(load_scene('pile').with_accuracy(
+        parse_accuracy({'preset': 'fast', 'sleep_time': None}, 'test')))
     stages = world.pipeline.stages
     checked = {'narrowphase': 0, 'separation': 0}
 
