@@ -280,7 +280,14 @@ def _predict_pair(k, x, v, radius, local_time, dynamic, a, b, gravity, has_gravi
                   dt, has_resting, resting_pair, touched, pair_t, listed, pending, n_pending):
     """Predict pair k again; list it if due in the step; return the pending count."""
     i, j = a[k], b[k]
-    t = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, has_gravity, min_speed, dt)
+    # Constant flags in each call: the inlined straight-path case compiles
+    # without the gravity and threshold code (three times faster).
+    if has_gravity:
+        t = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, True, min_speed, dt)
+    elif min_speed > 0.0:
+        t = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, False, min_speed, dt)
+    else:
+        t = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, False, 0.0, dt)
     if has_resting and resting_pair[k] and not (touched[i] or touched[j]):
         t = np.inf
     pair_t[k] = t
@@ -310,6 +317,25 @@ def _predict_walls(p, x, v, radius, local_time, low, high, dimensions, gravity, 
         wall_due[n_wall_due] = p
         n_wall_due += 1
     return n_wall_due
+
+
+@njit(cache=True, error_model='numpy')
+def _predict_straight(x, v, radius, local_time, dynamic, a, b, gravity, dt, pair_t, listed,
+                      pending):
+    """Predict every pair on straight paths without threshold; return the pending count.
+
+    The first round's ``_predict_pair`` loop for the common case, compiled
+    on its own: inside ``sweep`` the same loop ran three times slower.
+    """
+    n_pending = 0
+    for k in range(a.size):
+        t = pair_time(x, v, radius, local_time, dynamic, a[k], b[k], gravity, False, 0.0, dt)
+        pair_t[k] = t
+        if t <= dt:
+            listed[k] = True
+            pending[n_pending] = k
+            n_pending += 1
+    return n_pending
 
 
 def workspace_sizes(n: int, m: int, dimensions: int) -> tuple[int, int, int]:
@@ -405,7 +431,10 @@ def sweep(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, 
         rounds_run += 1
         # Predict again the pairs and walls of the particles that changed
         # (in the first round every pair, in pair order, then every particle).
-        if round_ == 0:
+        if round_ == 0 and not has_gravity and not min_speed > 0.0 and not has_resting:
+            n_pending = _predict_straight(x, v, radius, local_time, dynamic, a, b, gravity, dt,
+                                          pair_t, listed, pending)
+        elif round_ == 0:
             for k in range(m):
                 n_pending = _predict_pair(k, x, v, radius, local_time, dynamic, a, b, gravity,
                                           has_gravity, min_speed, dt, has_resting,
