@@ -338,6 +338,29 @@ def _predict_straight(x, v, radius, local_time, dynamic, a, b, gravity, dt, pair
     return n_pending
 
 
+@njit(cache=True, error_model='numpy', inline='always')
+def _first_wall_straight(x, v, radius, local_time, p, low, high, dimensions):
+    """Return particle p's earliest wall time on a straight path: ``wall_times``' minimum.
+
+    The same formulas as ``wall_times`` without gravity or threshold, so
+    the value is the minimum of the row that function writes.
+    """
+    r = radius[p]
+    first = np.inf
+    for axis in range(dimensions):
+        pos, vel = x[p, axis], v[p, axis]
+        gap_low = pos - (low[axis] + r)
+        gap_high = (high[axis] - r) - pos
+        lo = (gap_low if not gap_low < 0.0 else 0.0) / -vel if vel < 0.0 else np.inf
+        hi = (gap_high if not gap_high < 0.0 else 0.0) / vel if vel > 0.0 else np.inf
+        t_lo, t_hi = local_time[p] + lo, local_time[p] + hi
+        if t_lo < first:
+            first = t_lo
+        if t_hi < first:
+            first = t_hi
+    return first
+
+
 @njit(cache=True, error_model='numpy')
 def _predict_all_walls(x, v, radius, local_time, dynamic, low, high, dimensions, gravity,
                        has_gravity, min_speed, dt, has_resting, resting_wall, touched, wall_t,
@@ -362,11 +385,17 @@ def _predict_all_walls(x, v, radius, local_time, dynamic, low, high, dimensions,
                                         resting_wall, touched, wall_t, first_wall,
                                         wall_listed, wall_due, n_wall_due)
         elif dimensions == 3:
-            # A constant dimension too: the compiler then drops the branches on
-            # each velocity's sign (random in a gas, mispredicted half the time).
-            n_wall_due = _predict_walls(p, x, v, radius, local_time, low, high, 3,
-                                        gravity, False, 0.0, dt, False, resting_wall, touched,
-                                        wall_t, first_wall, wall_listed, wall_due, n_wall_due)
+            # The earliest wall time alone, in locals: the row is written only
+            # for a due particle (the others' rows are never read), and with a
+            # constant dimension the compiler drops the branches on each
+            # velocity's sign (random in a gas, mispredicted half the time).
+            first = _first_wall_straight(x, v, radius, local_time, p, low, high, 3)
+            first_wall[p] = first
+            if first <= dt:
+                n_wall_due = _predict_walls(p, x, v, radius, local_time, low, high, 3,
+                                            gravity, False, 0.0, dt, False, resting_wall,
+                                            touched, wall_t, first_wall, wall_listed, wall_due,
+                                            n_wall_due)
         else:
             n_wall_due = _predict_walls(p, x, v, radius, local_time, low, high, dimensions,
                                         gravity, False, 0.0, dt, False, resting_wall, touched,
@@ -433,10 +462,10 @@ def sweep(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, 
     start[:] = 0
     flags[:4 * n + m] = False
     local_time[:] = 0.0
-    pair_t[:] = np.inf
-    wall_t[:, :] = np.inf
+    # pair_t, wall_t and best_t need no clearing: the first round writes
+    # every pair's time and the wall rows of every due particle, and a
+    # particle's best_t is read only in the round that set it (best_round).
     first_wall[:] = np.inf
-    best_t[:] = np.inf
     seen[:] = -1
     best_k[:] = m
     best_round[:] = -1
@@ -452,11 +481,10 @@ def sweep(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, 
         fill[a[k]] += 1
         incident[fill[b[k]]] = k
         fill[b[k]] += 1
-    # Particles changed in the last round (all at the start); pending pairs
-    # (time <= dt) and particles with a pending wall impact.
-    for p in range(n):
-        changed[p] = p
-    n_changed = n
+    # Particles changed in the last round (the first round predicts every
+    # pair and particle instead); pending pairs (time <= dt) and particles
+    # with a pending wall impact.
+    n_changed = 0
     n_pending = 0
     n_wall_due = 0
     records = np.empty((16, RECORD_WIDTH))
@@ -481,7 +509,7 @@ def sweep(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, 
                                             dimensions, gravity, has_gravity, min_speed, dt,
                                             has_resting, resting_wall, touched, wall_t,
                                             first_wall, wall_listed, wall_due)
-        for c in range(n_changed if round_ > 0 else 0):
+        for c in range(n_changed):
             p = changed[c]
             if round_ > 0:
                 for e_ in range(start[p], start[p + 1]):
