@@ -80,8 +80,6 @@ MAX_FALLBACK_HOLD = 63
 # Slots of the cell table per particle, at most (an open scene that spreads
 # out shares slots between far cells; the neighbour query tells them apart).
 SLOTS_PER_PARTICLE = 8
-# Heap entries per particle at which stale ones are first dropped.
-COMPACT_PER_PARTICLE = 4
 
 
 class EventDrivenStage(Stage):
@@ -112,7 +110,10 @@ class EventDrivenStage(Stage):
         # resting contact, which this mode hands to them: exact impacts keep e.
         self.threshold = effects.restitution_threshold or 0.0
         self.time = 0.0
-        self.events = 0
+        # Events taken (impacts, wall visits, cell crossings), and of them the
+        # particle and wall impacts and the crossings (``bench exact``).
+        # Refreshes: a full candidate list made a particle predict again.
+        self.events = self.impacts = self.crossings = self.refreshes = 0
         self._state: Optional[ParticleState] = None
         self._fallback: Optional[Pipeline] = None
         self._build_fallback = fallback
@@ -129,42 +130,45 @@ class EventDrivenStage(Stage):
         check_event_particles(self.accuracy, self.effects, state.inv_mass, '')
         self._state = state
         self.dims = dimensions
-        self.ref_time = np.full(n, self.time)
-        self.last_impact = np.full(n, -np.inf)
-        self.count = np.zeros(n, dtype=np.int64)
-        self.own_next = np.full(n, np.inf)     # each particle's next wall or cell event
         self.cell_size = self._choose_cell_size(state, dimensions) if n else 1.0
-        self.cell = np.zeros((n, 3), dtype=np.int64)
-        self.cell[:, :dimensions] = np.floor(state.position[:, :dimensions] / self.cell_size)
+        cell = np.zeros((n, 3), dtype=np.int64)
+        cell[:, :dimensions] = np.floor(state.position[:, :dimensions] / self.cell_size)
+        # The stage's own copy of the particles, in cell order so that
+        # neighbours are near in memory (the loop is bound by memory, not by
+        # arithmetic): stage particle k is the world's perm[k]. The loop moves
+        # it lazily and publishes to the world's arrays only at a step's end,
+        # so a step handed to the fallback leaves the world's state untouched.
+        self.perm = np.lexsort((cell[:, 2], cell[:, 1], cell[:, 0])).astype(np.int64)
+        self.cell = cell[self.perm]
+        self.position = state.position[self.perm]
+        self.velocity = state.velocity[self.perm]
+        self.inv_mass = state.inv_mass[self.perm]
+        self.radius = state.radius[self.perm]
+        self.clock, self.book, self.cand_time, self.cand_int = ek.new_arrays(n)
+        self.clock[:, ek.C_REF] = self.time
         self.table = self._table_shape(n, dimensions)
         slots = int(np.prod(self.table))
         self.head = np.full(slots, -1, dtype=np.int64)
         self.occupancy = np.zeros(slots, dtype=np.int64)
         self.next = np.full(n, -1, dtype=np.int64)
         self.previous = np.full(n, -1, dtype=np.int64)
-        capacity = max(64, 16 * n)
-        self.heap_time = np.empty(capacity)
-        self.heap_int = np.empty((capacity, 6), dtype=np.int64)
         self.meta = np.zeros(ek.META_SIZE, dtype=np.int64)
-        # Stale entries are dropped once the heap holds a few per particle.
-        self.meta[ek.COMPACT_AT] = max(1024, COMPACT_PER_PARTICLE * n)
         if self.walls is not None:
             self.low = np.asarray(self.walls.low, float)
             self.high = np.asarray(self.walls.high, float)
         else:
             self.low, self.high = np.full(3, -np.inf), np.full(3, np.inf)
         own = state.restitution
-        self.own_e = np.full(n, np.nan) if own is None else np.asarray(own, float)
+        self.own_e = np.full(n, np.nan) if own is None else np.asarray(own, float)[self.perm]
         self.params = np.array([self.collapse_time, self.threshold, self.restitution,
                                 1.0 if self.walls is None else self.walls.restitution,
                                 self.cell_size])
         self.flags = np.array([dimensions, self.under_gravity, self.walls is not None,
                                own is not None, 0, 0], dtype=np.int64)
-        self.heap_time, self.heap_int = ek.build_events(
-            self.time, state.position, state.velocity, state.inv_mass, state.radius,
-            self.gravity, self.low, self.high, self.params, self.flags, self.cell, self.table,
-            self.head, self.next, self.previous, self.occupancy, self.ref_time, self.count,
-            self.own_next, self.heap_time, self.heap_int, self.meta)
+        ek.build_events(self.time, self.position, self.velocity, self.inv_mass, self.radius,
+                        self.gravity, self.low, self.high, self.params, self.flags, self.cell,
+                        self.table, self.head, self.next, self.previous, self.occupancy,
+                        self.clock, self.book, self.cand_time, self.cand_int, self.meta)
 
     def _choose_cell_size(self, state: ParticleState, dimensions: int) -> float:
         """Cells at least one contact diameter wide, ``particles_per_cell`` each."""
@@ -202,9 +206,11 @@ class EventDrivenStage(Stage):
 
     def _still_valid(self, state: ParticleState) -> bool:
         """Return whether ``state`` is the one left by the last step, untouched."""
-        return (state is self._state and len(state) == self.count.size
-                and np.array_equal(state.position, self._position_after)
-                and np.array_equal(state.velocity, self._velocity_after))
+        return (state is self._state and len(state) == self.book.shape[0]
+                and state.position.shape == self.position.shape
+                and ek.matches(state.position, state.velocity, state.inv_mass, state.radius,
+                               self.position, self.velocity, self.inv_mass, self.radius,
+                               self.perm))
 
     # -- the stage ---------------------------------------------------------
 
@@ -224,14 +230,13 @@ class EventDrivenStage(Stage):
             self._rebuild(state, ctx.dimensions)
         n = len(state)
         budget = max(MIN_EVENT_BUDGET, self.event_budget * n)
-        saved = (state.position.copy(), state.velocity.copy())
         end = self.time + ctx.dt
         record = ctx.impacts is not None
         self.flags[ek.F_RECORD] = record
         self.flags[ek.F_LOSSES] = ctx.losses is not None
         meta = self.meta
-        meta[[ek.RECORDED, ek.COLLISIONS, ek.WALL_COLLISIONS, ek.EVENTS, ek.BOOKED_PAIRS,
-              ek.BOOKED_WALLS]] = 0
+        meta[[ek.RECORDED, ek.COLLISIONS, ek.WALL_COLLISIONS, ek.EVENTS, ek.CHORES,
+              ek.BOOKED_PAIRS, ek.BOOKED_WALLS, ek.CROSSINGS, ek.PREDICTIONS, ek.REFRESHES]] = 0
         dissipated = ctx.stats.dissipated
         totals = np.array([dissipated.get('restitution', 0.0), dissipated.get('walls', 0.0)])
         losses = np.zeros(n if ctx.losses is not None else 0)
@@ -239,23 +244,25 @@ class EventDrivenStage(Stage):
         own = state.restitution         # read each step, as the law reads it at each impact
         self.flags[ek.F_OWN_E] = own is not None
         if own is not None:
-            self.own_e = np.asarray(own, float)
-        status, self.heap_time, self.heap_int, rec_f, rec_ij = ek.run_events(
-            end, budget, state.position, state.velocity, state.inv_mass, state.radius,
+            self.own_e = np.asarray(own, float)[self.perm]
+        status, rec_f, rec_ij = ek.run_events(
+            end, budget, self.position, self.velocity, self.inv_mass, self.radius,
             self.own_e, self.gravity, self.low, self.high, self.params, self.flags, self.cell,
-            self.table, self.head, self.next, self.previous, self.occupancy, self.ref_time,
-            self.last_impact, self.count, self.own_next, self.heap_time,
-            self.heap_int, meta, totals, losses, np.empty((rows, ek.RECORD_COLUMNS)),
-            np.empty((rows, 2), dtype=np.int64))
+            self.table, self.head, self.next, self.previous, self.occupancy, self.clock,
+            self.book, self.cand_time, self.cand_int, meta, totals, losses,
+            np.empty((rows, ek.RECORD_COLUMNS)), np.empty((rows, 2), dtype=np.int64),
+            self.perm, state.position, state.velocity)
         if status != ek.DONE:
-            # Roll the step back and let the step solver take it.
-            state.position[:], state.velocity[:] = saved
+            # The world's state is untouched: let the step solver take the step.
             self._fallback_streak += 1
             self._hold = min(2 ** self._fallback_streak - 1, MAX_FALLBACK_HOLD)
             self._fallback_step(ctx)
             return
         self._fallback_streak = 0
         self.events += int(meta[ek.EVENTS])
+        self.impacts += int(meta[ek.COLLISIONS] + meta[ek.WALL_COLLISIONS])
+        self.crossings += int(meta[ek.CROSSINGS])
+        self.refreshes += int(meta[ek.REFRESHES])
         ctx.stats.collisions += int(meta[ek.COLLISIONS])
         ctx.stats.wall_collisions += int(meta[ek.WALL_COLLISIONS])
         # The totals were summed impact after impact, as bookings one by one would.
@@ -273,8 +280,6 @@ class EventDrivenStage(Stage):
                                rows_f[:, ek.R_NORMAL:ek.R_NORMAL + 3],
                                rows_f[:, ek.R_IMPULSE], 0.0, rows_f[:, ek.R_APPROACH])
         self.time = end
-        self._position_after = state.position.copy()
-        self._velocity_after = state.velocity.copy()
 
     def _fallback_step(self, ctx: StepContext) -> None:
         """Advance this step with the step solver (``EVENT_FALLBACK`` preset)."""
