@@ -87,11 +87,9 @@ C_REF, C_LAST, C_WALL, C_CELL, C_REFRESH, C_KEY = range(6)
 CLOCK_COLUMNS = 6
 # Columns of ``book`` (int64, one row per particle): change counter, wall of
 # the next wall event (2 axis + side), face of the next crossing, candidates
-# held, which event is next (a candidate's slot, or one of the codes below),
-# the heap's order (row k: the particle at heap slot k) and each particle's
-# heap slot.
-B_COUNT, B_WALL, B_FACE, B_HELD, B_NEXT, B_ORDER, B_WHERE = range(7)
-BOOK_COLUMNS = 7
+# held, which event is next (a candidate's slot, or one of the codes below).
+B_COUNT, B_WALL, B_FACE, B_HELD, B_NEXT = range(5)
+BOOK_COLUMNS = 5
 NEXT_WALL, NEXT_CELL, NEXT_REFRESH, NEXT_NONE = -1, -2, -3, -4
 # Pair candidates a particle holds (one more schedules a refresh).
 CANDIDATES = 8
@@ -110,57 +108,62 @@ _INF = np.inf
 # -- the heap of particles ----------------------------------------------------
 
 @njit(cache=True, inline='always')
-def _before(clock, a, b):
-    """Say whether particle ``a``'s next event comes before ``b``'s (ties: lower index)."""
-    ta, tb = clock[a, C_KEY], clock[b, C_KEY]
-    return ta < tb or (ta == tb and a < b)
-
-
-@njit(cache=True, inline='always')
-def _sift_down(clock, book, size, k, p):
-    """Place particle ``p`` at heap slot ``k`` or below."""
+def _sift_down(heap_key, heap_int, size, k, p, t):
+    """Place particle ``p`` of key ``t`` at heap slot ``k`` or below."""
     while True:
         c = 2 * k + 1
         if c >= size:
             break
-        r = book[c, B_ORDER]
+        tc = heap_key[c]
         if c + 1 < size:
-            s = book[c + 1, B_ORDER]
-            if _before(clock, s, r):
-                c, r = c + 1, s
-        if not _before(clock, r, p):
+            ts = heap_key[c + 1]
+            if ts < tc or (ts == tc and heap_int[0, c + 1] < heap_int[0, c]):
+                c, tc = c + 1, ts
+        if not (tc < t or (tc == t and heap_int[0, c] < p)):
             break
-        book[k, B_ORDER] = r
-        book[r, B_WHERE] = k
+        r = heap_int[0, c]
+        heap_key[k] = tc
+        heap_int[0, k] = r
+        heap_int[1, r] = k
         k = c
-    book[k, B_ORDER] = p
-    book[p, B_WHERE] = k
+    heap_key[k] = t
+    heap_int[0, k] = p
+    heap_int[1, p] = k
 
 
 @njit(cache=True, inline='always')
-def heap_update(clock, book, p):
-    """Move particle ``p`` to its place after its key changed (up or down)."""
-    k = book[p, B_WHERE]
+def heap_update(clock, heap_key, heap_int, p):
+    """Move particle ``p`` to its place after its key (``clock[p, C_KEY]``) changed.
+
+    The heap keeps the keys in its own order (``heap_key``, slot by slot) so
+    that a sift reads neighbouring memory; ``heap_int`` rows: the particle
+    at each slot, each particle's slot. Ties go to the lower index.
+    """
+    t = clock[p, C_KEY]
+    k = heap_int[1, p]
     while k > 0:
         parent = (k - 1) >> 1
-        r = book[parent, B_ORDER]
-        if not _before(clock, p, r):
+        tp = heap_key[parent]
+        r = heap_int[0, parent]
+        if not (t < tp or (t == tp and p < r)):
             break
-        book[k, B_ORDER] = r
-        book[r, B_WHERE] = k
+        heap_key[k] = tp
+        heap_int[0, k] = r
+        heap_int[1, r] = k
         k = parent
-    _sift_down(clock, book, book.shape[0], k, p)
+    _sift_down(heap_key, heap_int, heap_key.size, k, p, t)
 
 
 @njit(cache=True)
-def heapify(clock, book):
+def heapify(clock, heap_key, heap_int):
     """Order every particle by its key (the heap of all particles)."""
-    n = book.shape[0]
+    n = heap_key.size
     for p in range(n):
-        book[p, B_ORDER] = p
-        book[p, B_WHERE] = p
+        heap_key[p] = clock[p, C_KEY]
+        heap_int[0, p] = p
+        heap_int[1, p] = p
     for k in range((n - 2) // 2, -1, -1):
-        _sift_down(clock, book, n, k, book[k, B_ORDER])
+        _sift_down(heap_key, heap_int, n, k, heap_int[0, k], heap_key[k])
 
 
 @njit(cache=True, inline='always')
@@ -295,15 +298,15 @@ def pair_time(pos, vel, radius, a, b):
 # -- the cell grid ------------------------------------------------------------
 
 @njit(cache=True, inline='always')
-def _slot(cx, cy, cz, table):
-    """Return the slot of cell (cx, cy, cz) in a table of table[0] x table[1] x table[2]."""
-    return ((cx % table[0]) * table[1] + (cy % table[1])) * table[2] + (cz % table[2])
+def _slot(p, cell, table):
+    """Return the slot of particle p's cell (its slot coordinates are columns 3 to 5)."""
+    return (cell[p, 3] * table[1] + cell[p, 4]) * table[2] + cell[p, 5]
 
 
 @njit(cache=True, inline='always')
 def _insert(p, cell, table, head, nxt, prv, occupancy, meta):
     """Put particle ``p`` at the head of its cell's slot list."""
-    s = _slot(cell[p, 0], cell[p, 1], cell[p, 2], table)
+    s = _slot(p, cell, table)
     first = head[s]
     nxt[p], prv[p] = first, -1
     if first >= 0:
@@ -317,7 +320,7 @@ def _insert(p, cell, table, head, nxt, prv, occupancy, meta):
 @njit(cache=True, inline='always')
 def _remove(p, cell, table, head, nxt, prv, occupancy):
     """Take particle ``p`` out of its cell's slot list."""
-    s = _slot(cell[p, 0], cell[p, 1], cell[p, 2], table)
+    s = _slot(p, cell, table)
     if prv[p] >= 0:
         nxt[prv[p]] = nxt[p]
     else:
@@ -378,7 +381,7 @@ def _scan(p, when, along, offset, skip_before, pos, vel, inv_mass, radius, gravi
     dims = flags[F_DIMS]
     mx, my, mz = table[0], table[1], table[2]
     px, py, pz = cell[p, 0], cell[p, 1], cell[p, 2]
-    sx0, sy0, sz0 = px % mx, py % my, pz % mz
+    sx0, sy0, sz0 = cell[p, 3], cell[p, 4], cell[p, 5]
     wall_p = clock[p, C_WALL]
     lo_x = hi_x = lo_y = hi_y = lo_z = hi_z = 0
     if dims > 0:
@@ -443,7 +446,14 @@ def _cross(p, pos, vel, inv_mass, radius, gravity, half_g, low, high, params, fl
     face = book[p, B_FACE]
     axis, side = face // 2, face % 2
     _remove(p, cell, table, head, nxt, prv, occupancy)
-    cell[p, axis] += 1 if side else -1
+    # The cell and its slot along the axis (wrapping round the table).
+    wrap = table[axis]
+    if side:
+        cell[p, axis] += 1
+        cell[p, 3 + axis] = 0 if cell[p, 3 + axis] == wrap - 1 else cell[p, 3 + axis] + 1
+    else:
+        cell[p, axis] -= 1
+        cell[p, 3 + axis] = wrap - 1 if cell[p, 3 + axis] == 0 else cell[p, 3 + axis] - 1
     _insert(p, cell, table, head, nxt, prv, occupancy, meta)
     # Candidates whose partner changed path are dropped now: room for new ones.
     for k in range(book[p, B_HELD] - 1, -1, -1):
@@ -506,7 +516,8 @@ def _record(rec_f, rec_ij, meta, when, i, j, px, py, pz, nx, ny, nz, impulse, ap
 @njit(cache=True, error_model='numpy')
 def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, low, high, params,
                flags, cell, table, head, nxt, prv, occupancy, clock, book, cand_time,
-               cand_int, meta, totals, losses, rec_f, rec_ij, perm, out_pos, out_vel):
+               cand_int, heap_key, heap_int, meta, totals, losses, rec_f, rec_ij, perm,
+               out_pos, out_vel):
     """Process every event up to ``end``, then publish every particle at ``end``.
 
     The stage's particles are the world's in another order (neighbours
@@ -532,8 +543,8 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, low, hig
     taken = 0
     chores = 0
     while book.shape[0] > 0:
-        p = book[0, B_ORDER]
-        when = clock[p, C_KEY]
+        p = heap_int[0, 0]
+        when = heap_key[0]
         if not when <= end:
             break
         which = book[p, B_NEXT]
@@ -546,7 +557,7 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, low, hig
                     return NOT_EXACT, rec_f, rec_ij
                 _drop(p, which, book, cand_time, cand_int)
                 _set_key(p, clock, book, cand_time)
-                heap_update(clock, book, p)
+                heap_update(clock, heap_key, heap_int, p)
                 continue
         # Who is predicted afresh after this event (one call site each: the
         # helpers are inlined), and whether their paths changed.
@@ -654,7 +665,7 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, low, hig
             _cross(p, pos, vel, inv_mass, radius, gravity, half_g, low, high, params, flags,
                    cell, table, head, nxt, prv, occupancy, clock, book, cand_time, cand_int,
                    meta)
-            heap_update(clock, book, p)
+            heap_update(clock, heap_key, heap_int, p)
             continue
         for k in range(2):
             r = first if k == 0 else second
@@ -662,7 +673,7 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, low, hig
                 _predict(r, bump, 0, pos, vel, inv_mass, radius, gravity, half_g, low, high,
                          params, flags, cell, table, head, nxt, clock, book, cand_time,
                          cand_int, meta)
-                heap_update(clock, book, r)
+                heap_update(clock, heap_key, heap_int, r)
     meta[CHORES] += chores
     for p in range(pos.shape[0]):
         _advance(pos, vel, clock, gravity, half_g, p, end)
@@ -675,7 +686,8 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, low, hig
 
 @njit(cache=True, error_model='numpy')
 def build_events(when, pos, vel, inv_mass, radius, gravity, low, high, params, flags, cell,
-                 table, head, nxt, prv, occupancy, clock, book, cand_time, cand_int, meta):
+                 table, head, nxt, prv, occupancy, clock, book, cand_time, cand_int, heap_key,
+                 heap_int, meta):
     """Fill the grid, predict every dynamic particle (each pair once) and order the heap.
 
     ``clock`` comes with every reference time at ``when``, no impact yet, no
@@ -692,7 +704,7 @@ def build_events(when, pos, vel, inv_mass, radius, gravity, low, high, params, f
                      meta)
         else:
             book[p, B_NEXT] = NEXT_NONE
-    heapify(clock, book)
+    heapify(clock, heap_key, heap_int)
 
 
 @njit(cache=True)
@@ -710,12 +722,16 @@ def matches(state_pos, state_vel, state_inv_mass, state_radius, pos, vel, inv_ma
 
 
 def new_arrays(n: int) -> tuple:
-    """Return (clock, book, cand_time, cand_int) for ``n`` particles, nothing predicted."""
+    """Return (clock, book, cand_time, cand_int, heap_key, heap_int) for ``n`` particles.
+
+    Nothing predicted yet, no impact yet.
+    """
     clock = np.full((n, CLOCK_COLUMNS), np.inf)
     clock[:, C_LAST] = -np.inf
     book = np.zeros((n, BOOK_COLUMNS), dtype=np.int64)
     return (clock, book, np.empty((n, CANDIDATES)),
-            np.empty((n, CANDIDATES, 2), dtype=np.int64))
+            np.empty((n, CANDIDATES, 2), dtype=np.int64), np.empty(n),
+            np.empty((2, n), dtype=np.int64))
 
 
 def warm_up() -> None:
@@ -726,19 +742,23 @@ def warm_up() -> None:
     gravity, low, high = np.zeros(3), np.full(3, -1.0), np.full(3, 1.0)
     params = np.array([1e-5, 0.0, 1.0, 1.0, 0.5])
     flags = np.array([3, 0, 1, 1, 1, 1], dtype=np.int64)
-    cell = np.floor(pos / 0.5).astype(np.int64)
     table = np.full(3, 7, dtype=np.int64)
+    cell = np.zeros((2, 6), dtype=np.int64)
+    cell[:, :3] = np.floor(pos / 0.5)
+    cell[:, 3:] = cell[:, :3] % table
     head, occupancy = np.full(343, -1, dtype=np.int64), np.zeros(343, dtype=np.int64)
     nxt, prv = np.full(2, -1, dtype=np.int64), np.full(2, -1, dtype=np.int64)
-    clock, book, cand_time, cand_int = new_arrays(2)
+    clock, book, cand_time, cand_int, heap_key, heap_int = new_arrays(2)
     clock[:, C_REF] = 0.0
     meta = np.zeros(META_SIZE, dtype=np.int64)
     build_events(0.0, pos, vel, inv_mass, radius, gravity, low, high, params, flags, cell,
-                 table, head, nxt, prv, occupancy, clock, book, cand_time, cand_int, meta)
+                 table, head, nxt, prv, occupancy, clock, book, cand_time, cand_int, heap_key,
+                 heap_int, meta)
     out_pos, out_vel = pos.copy(), vel.copy()
     perm = np.arange(2)
     run_events(1.0, 1000, pos, vel, inv_mass, radius, np.full(2, np.nan), gravity, low, high,
                params, flags, cell, table, head, nxt, prv, occupancy, clock, book, cand_time,
-               cand_int, meta, np.zeros(2), np.zeros(2), np.empty((4, RECORD_COLUMNS)),
-               np.empty((4, 2), dtype=np.int64), perm, out_pos, out_vel)
+               cand_int, heap_key, heap_int, meta, np.zeros(2), np.zeros(2),
+               np.empty((4, RECORD_COLUMNS)), np.empty((4, 2), dtype=np.int64), perm, out_pos,
+               out_vel)
     matches(out_pos, out_vel, inv_mass, radius, pos, vel, inv_mass, radius, perm)

@@ -131,7 +131,8 @@ class EventDrivenStage(Stage):
         self._state = state
         self.dims = dimensions
         self.cell_size = self._choose_cell_size(state, dimensions) if n else 1.0
-        cell = np.zeros((n, 3), dtype=np.int64)
+        # Columns: the cell's coordinates, then its slot's in the table.
+        cell = np.zeros((n, 6), dtype=np.int64)
         cell[:, :dimensions] = np.floor(state.position[:, :dimensions] / self.cell_size)
         # The stage's own copy of the particles, in cell order so that
         # neighbours are near in memory (the loop is bound by memory, not by
@@ -144,9 +145,11 @@ class EventDrivenStage(Stage):
         self.velocity = state.velocity[self.perm]
         self.inv_mass = state.inv_mass[self.perm]
         self.radius = state.radius[self.perm]
-        self.clock, self.book, self.cand_time, self.cand_int = ek.new_arrays(n)
+        (self.clock, self.book, self.cand_time, self.cand_int, self.heap_key,
+         self.heap_int) = ek.new_arrays(n)
         self.clock[:, ek.C_REF] = self.time
         self.table = self._table_shape(n, dimensions)
+        self.cell[:, 3:] = self.cell[:, :3] % self.table
         slots = int(np.prod(self.table))
         self.head = np.full(slots, -1, dtype=np.int64)
         self.occupancy = np.zeros(slots, dtype=np.int64)
@@ -168,7 +171,8 @@ class EventDrivenStage(Stage):
         ek.build_events(self.time, self.position, self.velocity, self.inv_mass, self.radius,
                         self.gravity, self.low, self.high, self.params, self.flags, self.cell,
                         self.table, self.head, self.next, self.previous, self.occupancy,
-                        self.clock, self.book, self.cand_time, self.cand_int, self.meta)
+                        self.clock, self.book, self.cand_time, self.cand_int, self.heap_key,
+                        self.heap_int, self.meta)
 
     def _choose_cell_size(self, state: ParticleState, dimensions: int) -> float:
         """Cells at least one contact diameter wide, ``particles_per_cell`` each."""
@@ -249,7 +253,8 @@ class EventDrivenStage(Stage):
             end, budget, self.position, self.velocity, self.inv_mass, self.radius,
             self.own_e, self.gravity, self.low, self.high, self.params, self.flags, self.cell,
             self.table, self.head, self.next, self.previous, self.occupancy, self.clock,
-            self.book, self.cand_time, self.cand_int, meta, totals, losses,
+            self.book, self.cand_time, self.cand_int, self.heap_key, self.heap_int, meta,
+            totals, losses,
             np.empty((rows, ek.RECORD_COLUMNS)), np.empty((rows, 2), dtype=np.int64),
             self.perm, state.position, state.velocity)
         if status != ek.DONE:
