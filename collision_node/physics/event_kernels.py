@@ -265,9 +265,18 @@ def pair_time(pos, vel, radius, a, b):
 
     inf for none; 0 for an overlapping pair that approaches.
     """
-    reach = radius[a] + radius[b]
-    dx, dy, dz = pos[a, 0] - pos[b, 0], pos[a, 1] - pos[b, 1], pos[a, 2] - pos[b, 2]
-    rx, ry, rz = vel[a, 0] - vel[b, 0], vel[a, 1] - vel[b, 1], vel[a, 2] - vel[b, 2]
+    return pair_delay(pos[a, 0] - pos[b, 0], pos[a, 1] - pos[b, 1], pos[a, 2] - pos[b, 2],
+                      vel[a, 0] - vel[b, 0], vel[a, 1] - vel[b, 1], vel[a, 2] - vel[b, 2],
+                      radius[a] + radius[b])
+
+
+@njit(cache=True, error_model='numpy', inline='always')
+def pair_delay(dx, dy, dz, rx, ry, rz, reach):
+    """``pair_time`` from the offset d, relative velocity r and contact distance (scalars).
+
+    Scalars only: an array handed to a function, even an inlined one, costs
+    two atomic reference-count updates, which the innermost loop cannot pay.
+    """
     # Most neighbours recede, or approach and miss: say so before dividing,
     # in raw units (the sign of each test is the scaled one's but at round-off
     # in a grazing pair; a product that underflows to 0 or overflows to NaN
@@ -383,6 +392,12 @@ def _scan(p, when, along, offset, skip_before, pos, vel, inv_mass, radius, gravi
     px, py, pz = cell[p, 0], cell[p, 1], cell[p, 2]
     sx0, sy0, sz0 = cell[p, 3], cell[p, 4], cell[p, 5]
     wall_p = clock[p, C_WALL]
+    # p's state and g as scalars for the inner loop.
+    px_, py_, pz_ = pos[p, 0], pos[p, 1], pos[p, 2]
+    vx_, vy_, vz_ = vel[p, 0], vel[p, 1], vel[p, 2]
+    r_p = radius[p]
+    gx, gy, gz = gravity[0], gravity[1], gravity[2]
+    hx, hy, hz = half_g[0], half_g[1], half_g[2]
     lo_x = hi_x = lo_y = hi_y = lo_z = hi_z = 0
     if dims > 0:
         lo_x, hi_x = -1, 1
@@ -411,9 +426,19 @@ def _scan(p, when, along, offset, skip_before, pos, vel, inv_mass, radius, gravi
                 while q >= 0:
                     if q != p and cell[q, 0] == cx and cell[q, 1] == cy and cell[q, 2] == cz \
                             and not (q < skip_before and inv_mass[q] > 0.0):
-                        if clock[q, C_REF] != when:
-                            _advance(pos, vel, clock, gravity, half_g, q, when)
-                        at = when + pair_time(pos, vel, radius, p, q)
+                        tau = when - clock[q, C_REF]
+                        if tau != 0.0:
+                            # _advance(q), written out: no arrays handed on.
+                            pos[q, 0] += vel[q, 0] * tau + hx * tau * tau
+                            pos[q, 1] += vel[q, 1] * tau + hy * tau * tau
+                            pos[q, 2] += vel[q, 2] * tau + hz * tau * tau
+                            vel[q, 0] += gx * tau
+                            vel[q, 1] += gy * tau
+                            vel[q, 2] += gz * tau
+                            clock[q, C_REF] = when
+                        at = when + pair_delay(
+                            px_ - pos[q, 0], py_ - pos[q, 1], pz_ - pos[q, 2],
+                            vx_ - vel[q, 0], vy_ - vel[q, 1], vz_ - vel[q, 2], r_p + radius[q])
                         if at < wall_p and at < clock[q, C_WALL]:
                             _hold(p, q, at, book[q, B_COUNT], clock, book, cand_time, cand_int)
                     q = nxt[q]
@@ -425,7 +450,8 @@ def _predict(p, bump, skip_before, pos, vel, inv_mass, radius, gravity, half_g, 
     """Predict particle p (at its reference time) afresh: walls, cell, 3^d cells around.
 
     ``bump``: p's path changed, so the candidates others hold with p go stale.
-    Sets p's key; the caller moves it in the heap.
+    Sets p's key; the caller moves it in the heap. (``build_events``'s; the
+    event loop has the same steps inline.)
     """
     if bump:
         book[p, B_COUNT] += 1
@@ -439,10 +465,12 @@ def _predict(p, bump, skip_before, pos, vel, inv_mass, radius, gravity, half_g, 
     _set_key(p, clock, book, cand_time)
 
 
-@njit(cache=True, error_model='numpy')
-def _cross(p, pos, vel, inv_mass, radius, gravity, half_g, low, high, params, flags, cell,
-           table, head, nxt, prv, occupancy, clock, book, cand_time, cand_int, meta):
-    """Move p (at its reference time) into the next cell and predict the new layer only."""
+@njit(cache=True, inline='always')
+def _enter_cell(p, cell, table, head, nxt, prv, occupancy, book, cand_time, cand_int, meta):
+    """Move p into the next cell; return the axis and side (+1, -1) of its new layer.
+
+    Candidates whose partner changed path are dropped now (room for new ones).
+    """
     face = book[p, B_FACE]
     axis, side = face // 2, face % 2
     _remove(p, cell, table, head, nxt, prv, occupancy)
@@ -455,16 +483,11 @@ def _cross(p, pos, vel, inv_mass, radius, gravity, half_g, low, high, params, fl
         cell[p, axis] -= 1
         cell[p, 3 + axis] = wrap - 1 if cell[p, 3 + axis] == 0 else cell[p, 3 + axis] - 1
     _insert(p, cell, table, head, nxt, prv, occupancy, meta)
-    # Candidates whose partner changed path are dropped now: room for new ones.
     for k in range(book[p, B_HELD] - 1, -1, -1):
         q = cand_int[p, k, 0]
         if book[q, B_COUNT] != cand_int[p, k, 1]:
             _drop(p, k, book, cand_time, cand_int)
-    _own_events(p, pos, vel, radius, gravity, low, high, params, flags, cell, clock, book,
-                False)
-    _scan(p, clock[p, C_REF], axis, 1 if side else -1, 0, pos, vel, inv_mass, radius, gravity,
-          half_g, flags, cell, table, head, nxt, clock, book, cand_time, cand_int)
-    _set_key(p, clock, book, cand_time)
+    return axis, 1 if side else -1
 
 
 # -- events -------------------------------------------------------------------
@@ -559,9 +582,9 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, low, hig
                 _set_key(p, clock, book, cand_time)
                 heap_update(clock, heap_key, heap_int, p)
                 continue
-        # Who is predicted afresh after this event (one call site each: the
-        # helpers are inlined), and whether their paths changed.
-        first, second, bump = p, -1, True
+        # Who is predicted after this event, whether their paths changed, and
+        # whether it is a crossing (then only the new layer of cells).
+        first, second, bump, crossing = p, -1, True, False
         if which == NEXT_REFRESH:
             chores += 1
             meta[REFRESHES] += 1
@@ -662,18 +685,29 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, low, hig
         elif which == NEXT_CELL:
             meta[CROSSINGS] += 1
             _advance(pos, vel, clock, gravity, half_g, p, when)
-            _cross(p, pos, vel, inv_mass, radius, gravity, half_g, low, high, params, flags,
-                   cell, table, head, nxt, prv, occupancy, clock, book, cand_time, cand_int,
-                   meta)
-            heap_update(clock, heap_key, heap_int, p)
-            continue
+            crossing = True
+        # One site for all predictions: the helpers are inlined here, and
+        # arrays passed to a function that is called cost reference counting.
         for k in range(2):
             r = first if k == 0 else second
-            if r >= 0:
-                _predict(r, bump, 0, pos, vel, inv_mass, radius, gravity, half_g, low, high,
-                         params, flags, cell, table, head, nxt, clock, book, cand_time,
-                         cand_int, meta)
-                heap_update(clock, heap_key, heap_int, r)
+            if r < 0:
+                continue
+            along, offset = -1, 0
+            if crossing:
+                along, offset = _enter_cell(r, cell, table, head, nxt, prv, occupancy, book,
+                                            cand_time, cand_int, meta)
+            else:
+                if bump:
+                    book[r, B_COUNT] += 1
+                meta[PREDICTIONS] += 1
+                book[r, B_HELD] = 0
+                clock[r, C_REFRESH] = _INF
+            _own_events(r, pos, vel, radius, gravity, low, high, params, flags, cell, clock,
+                        book, not crossing)
+            _scan(r, when, along, offset, 0, pos, vel, inv_mass, radius, gravity, half_g, flags,
+                  cell, table, head, nxt, clock, book, cand_time, cand_int)
+            _set_key(r, clock, book, cand_time)
+            heap_update(clock, heap_key, heap_int, r)
     meta[CHORES] += chores
     for p in range(pos.shape[0]):
         _advance(pos, vel, clock, gravity, half_g, p, end)

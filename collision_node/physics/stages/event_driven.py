@@ -71,10 +71,12 @@ from ..state import ParticleState
 
 PAIR, WALL, CELL = ek.PAIR, ek.WALL, ek.CELL
 
-# Cells hold about this many particles: fewer means more cell crossings,
-# more means longer candidate lists per prediction. About one was the
-# fastest of 8, 2, 1 and 0.5 on the compiled loop (docs/performance.md).
-PARTICLES_PER_CELL = 1.0
+# Cells hold about this many particles (cells are never narrower than a
+# contact diameter): fewer means more cell crossings, more means more
+# neighbours per prediction. A crossing predicts only the newly entered layer
+# of cells, so small cells pay: 0.25 was about the fastest of 1, 0.7, 0.5,
+# 0.35, 0.25 and 0.1 (docs/performance.md).
+PARTICLES_PER_CELL = 0.25
 # Steps in a row that go straight to the step solver after fallbacks, at most.
 MAX_FALLBACK_HOLD = 63
 # Slots of the cell table per particle, at most (an open scene that spreads
