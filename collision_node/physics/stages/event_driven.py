@@ -105,6 +105,7 @@ class EventDrivenStage(Stage):
         self.collapse_time = accuracy.collapse_time
         self.event_budget = accuracy.event_budget
         self.accuracy, self.effects = accuracy, effects
+        self.half_g = 0.5 * self.gravity
         self.under_gravity = bool(np.any(self.gravity != 0.0))
         self.particles_per_cell = float(particles_per_cell)
         # A declared restitution threshold is part of the contact law. The
@@ -251,14 +252,21 @@ class EventDrivenStage(Stage):
         self.flags[ek.F_OWN_E] = own is not None
         if own is not None:
             self.own_e = np.asarray(own, float)[self.perm]
-        status, rec_f, rec_ij = ek.run_events(
-            end, budget, self.position, self.velocity, self.inv_mass, self.radius,
-            self.own_e, self.gravity, self.low, self.high, self.params, self.flags, self.cell,
-            self.table, self.head, self.next, self.previous, self.occupancy, self.clock,
-            self.book, self.cand_time, self.cand_int, self.heap_key, self.heap_int, meta,
-            totals, losses,
-            np.empty((rows, ek.RECORD_COLUMNS)), np.empty((rows, 2), dtype=np.int64),
-            self.perm, state.position, state.velocity)
+        rec_f = np.empty((rows, ek.RECORD_COLUMNS))
+        rec_ij = np.empty((rows, 2), dtype=np.int64)
+        while True:
+            status = ek.run_events(
+                end, budget, self.position, self.velocity, self.inv_mass, self.radius,
+                self.own_e, self.gravity, self.half_g, self.low, self.high, self.params,
+                self.flags, self.cell, self.table, self.head, self.next, self.previous,
+                self.occupancy, self.clock, self.book, self.cand_time, self.cand_int,
+                self.heap_key, self.heap_int, meta, totals, losses, rec_f, rec_ij, self.perm,
+                state.position, state.velocity)
+            if status != ek.GROW:
+                break
+            # The impact records are full: double them and let the loop go on.
+            rec_f = np.concatenate([rec_f, np.empty_like(rec_f)])
+            rec_ij = np.concatenate([rec_ij, np.empty_like(rec_ij)])
         if status != ek.DONE:
             # The world's state is untouched: let the step solver take the step.
             self._fallback_streak += 1
