@@ -795,3 +795,8 @@ def warm_up() -> None:
                np.empty((4, RECORD_COLUMNS)), np.empty((4, 2), dtype=np.int64), perm, out_pos,
                out_vel)
     matches(out_pos, out_vel, inv_mass, radius, pos, vel, inv_mass, radius, perm)
+
+
+def kernels() -> list:
+    """Return the compiled kernels of this module (the ones a warm-up compiles)."""
+    return [build_events, run_events, matches]

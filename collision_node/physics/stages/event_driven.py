@@ -16,19 +16,26 @@ impulse along the line of action at contact, per-particle restitution by
 the combine rule, e = 0 below the restitution threshold, the wall as a
 side of w = 0, losses from the impulses, impacts recorded at their time.
 
-Bookkeeping: each particle stores its state at its own reference time; a
-heap holds predicted events, each stamped with the change counters of its
-particles, so an event whose particle changed since is skipped when popped
-(lazy invalidation). Neighbours come from a hash grid of cells at least one
-contact diameter wide (``PARTICLES_PER_CELL`` on average); crossing a cell
-is itself an event. An event touches one or two particles: it re-predicts
-only them, against the particles of the 3^d neighbouring cells. At the end
-of each step every particle is brought to the step's end time so the
-world's state is a snapshot like in step mode. The loop itself (grid, heap,
-predictions, impacts) runs compiled, one call per step
-(``collision_node.physics.event_kernels``); this stage owns its arrays
-between steps and the rules around it (rebuild, rollback, fallback,
-bookings, the impact log).
+Bookkeeping: the stage keeps its own copy of the particles, in the order
+of their cells (neighbours near in memory), each at its own reference
+time. Each particle holds its next wall event, its next cell crossing and
+a short list of predicted pair impacts, each stamped with the partner's
+change counter (a partner that changed since is dropped when it comes up:
+lazy invalidation); a heap of the particles orders them by their earliest
+event. Neighbours come from a hash grid of cells at least one contact
+diameter wide (``PARTICLES_PER_CELL`` on average); crossing a cell is
+itself an event. An impact re-predicts its one or two particles against
+the particles of the 3^d neighbouring cells; a crossing changes no path
+and predicts the particle against the newly entered layer of 3^(d-1)
+cells only. At the end of each step every particle is brought to the
+step's end time and written to the world's state, so that state is a
+snapshot like in step mode; a step handed to the fallback leaves it
+untouched. The loop itself (grid, heap, predictions, impacts) runs
+compiled, one call per step (``collision_node.physics.event_kernels``);
+this stage owns its arrays between steps and the rules around it
+(rebuild, fallback, bookings, the impact log). ``events`` counts what the
+loop took: impacts, cell crossings and wall visits without an impact;
+``impacts`` and ``crossings`` count the first two.
 
 Inelastic collapse (infinitely many impacts in finite time when e < 1)
 without gravity is stopped with the TC model: an impact within
@@ -314,7 +321,8 @@ class EventDrivenStage(Stage):
     def describe(self) -> str:
         """Say what the stage does."""
         return ('exact event-driven: closed-form impact times (pairs, walls, gravity), '
-                f'heap with lazy invalidation, hash grid, TC model t_c = '
+                f'per-particle event lists in a heap of particles, lazy invalidation, '
+                f'hash grid (a crossing predicts the new layer of cells), TC model t_c = '
                 f'{self.collapse_time:g} s; a step with resting contact under gravity or '
                 f'more than {self.event_budget} events per particle is solved by the '
                 f'{EVENT_FALLBACK} step solver')
