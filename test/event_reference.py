@@ -5,7 +5,8 @@ its loop moved into ``collision_node/physics/event_kernels.py``: a
 ``heapq`` of (time, seq, kind, p, q, stamps) tuples, a dict of cell sets,
 vectorised predictions. ``test/test_event_kernels.py`` runs it and the
 compiled stage on the same worlds and asserts the same impacts at the same
-times. The cell size is a parameter here (the stage's default was
+times to round-off (the compiled loop predicts on another schedule, see
+its module doc). The cell size is a parameter here (the stage's default was
 ``PARTICLES_PER_CELL`` = 8 per cell) so both can be run on the same grid.
 """
 

@@ -16,19 +16,26 @@ impulse along the line of action at contact, per-particle restitution by
 the combine rule, e = 0 below the restitution threshold, the wall as a
 side of w = 0, losses from the impulses, impacts recorded at their time.
 
-Bookkeeping: each particle stores its state at its own reference time; a
-heap holds predicted events, each stamped with the change counters of its
-particles, so an event whose particle changed since is skipped when popped
-(lazy invalidation). Neighbours come from a hash grid of cells at least one
-contact diameter wide (``PARTICLES_PER_CELL`` on average); crossing a cell
-is itself an event. An event touches one or two particles: it re-predicts
-only them, against the particles of the 3^d neighbouring cells. At the end
-of each step every particle is brought to the step's end time so the
-world's state is a snapshot like in step mode. The loop itself (grid, heap,
-predictions, impacts) runs compiled, one call per step
-(``collision_node.physics.event_kernels``); this stage owns its arrays
-between steps and the rules around it (rebuild, rollback, fallback,
-bookings, the impact log).
+Bookkeeping: the stage keeps its own copy of the particles, in the order
+of their cells (neighbours near in memory), each at its own reference
+time. Each particle holds its next wall event, its next cell crossing and
+a short list of predicted pair impacts, each stamped with the partner's
+change counter (a partner that changed since is dropped when it comes up:
+lazy invalidation); a heap of the particles orders them by their earliest
+event. Neighbours come from a hash grid of cells at least one contact
+diameter wide (``PARTICLES_PER_CELL`` on average); crossing a cell is
+itself an event. An impact re-predicts its one or two particles against
+the particles of the 3^d neighbouring cells; a crossing changes no path
+and predicts the particle against the newly entered layer of 3^(d-1)
+cells only. At the end of each step every particle is brought to the
+step's end time and written to the world's state, so that state is a
+snapshot like in step mode; a step handed to the fallback leaves it
+untouched. The loop itself (grid, heap, predictions, impacts) runs
+compiled, one call per step (``collision_node.physics.event_kernels``);
+this stage owns its arrays between steps and the rules around it
+(rebuild, fallback, bookings, the impact log). ``events`` counts what the
+loop took: impacts, cell crossings and wall visits without an impact;
+``impacts`` and ``crossings`` count the first two.
 
 Inelastic collapse (infinitely many impacts in finite time when e < 1)
 without gravity is stopped with the TC model: an impact within
@@ -71,17 +78,17 @@ from ..state import ParticleState
 
 PAIR, WALL, CELL = ek.PAIR, ek.WALL, ek.CELL
 
-# Cells hold about this many particles: fewer means more cell crossings,
-# more means longer candidate lists per prediction. About one was the
-# fastest of 8, 2, 1 and 0.5 on the compiled loop (docs/performance.md).
-PARTICLES_PER_CELL = 1.0
+# Cells hold about this many particles (cells are never narrower than a
+# contact diameter): fewer means more cell crossings, more means more
+# neighbours per prediction. A crossing predicts only the newly entered layer
+# of cells, so small cells pay: 0.25 was about the fastest of 1, 0.7, 0.5,
+# 0.35, 0.25 and 0.1 (docs/performance.md).
+PARTICLES_PER_CELL = 0.25
 # Steps in a row that go straight to the step solver after fallbacks, at most.
 MAX_FALLBACK_HOLD = 63
 # Slots of the cell table per particle, at most (an open scene that spreads
 # out shares slots between far cells; the neighbour query tells them apart).
 SLOTS_PER_PARTICLE = 8
-# Heap entries per particle at which stale ones are first dropped.
-COMPACT_PER_PARTICLE = 4
 
 
 class EventDrivenStage(Stage):
@@ -105,6 +112,7 @@ class EventDrivenStage(Stage):
         self.collapse_time = accuracy.collapse_time
         self.event_budget = accuracy.event_budget
         self.accuracy, self.effects = accuracy, effects
+        self.half_g = 0.5 * self.gravity
         self.under_gravity = bool(np.any(self.gravity != 0.0))
         self.particles_per_cell = float(particles_per_cell)
         # A declared restitution threshold is part of the contact law. The
@@ -112,7 +120,10 @@ class EventDrivenStage(Stage):
         # resting contact, which this mode hands to them: exact impacts keep e.
         self.threshold = effects.restitution_threshold or 0.0
         self.time = 0.0
-        self.events = 0
+        # Events taken (impacts, wall visits, cell crossings), and of them the
+        # particle and wall impacts and the crossings (``bench exact``).
+        # Refreshes: a full candidate list made a particle predict again.
+        self.events = self.impacts = self.crossings = self.refreshes = 0
         self._state: Optional[ParticleState] = None
         self._fallback: Optional[Pipeline] = None
         self._build_fallback = fallback
@@ -129,42 +140,49 @@ class EventDrivenStage(Stage):
         check_event_particles(self.accuracy, self.effects, state.inv_mass, '')
         self._state = state
         self.dims = dimensions
-        self.ref_time = np.full(n, self.time)
-        self.last_impact = np.full(n, -np.inf)
-        self.count = np.zeros(n, dtype=np.int64)
-        self.own_next = np.full(n, np.inf)     # each particle's next wall or cell event
         self.cell_size = self._choose_cell_size(state, dimensions) if n else 1.0
-        self.cell = np.zeros((n, 3), dtype=np.int64)
-        self.cell[:, :dimensions] = np.floor(state.position[:, :dimensions] / self.cell_size)
+        # Columns: the cell's coordinates, then its slot's in the table.
+        cell = np.zeros((n, 6), dtype=np.int64)
+        cell[:, :dimensions] = np.floor(state.position[:, :dimensions] / self.cell_size)
+        # The stage's own copy of the particles, in cell order so that
+        # neighbours are near in memory (the loop is bound by memory, not by
+        # arithmetic): stage particle k is the world's perm[k]. The loop moves
+        # it lazily and publishes to the world's arrays only at a step's end,
+        # so a step handed to the fallback leaves the world's state untouched.
+        self.perm = np.lexsort((cell[:, 2], cell[:, 1], cell[:, 0])).astype(np.int64)
+        self.cell = cell[self.perm]
+        self.position = state.position[self.perm]
+        self.velocity = state.velocity[self.perm]
+        self.inv_mass = state.inv_mass[self.perm]
+        self.radius = state.radius[self.perm]
+        (self.clock, self.book, self.cand_time, self.cand_int, self.heap_key,
+         self.heap_int) = ek.new_arrays(n)
+        self.clock[:, ek.C_REF] = self.time
         self.table = self._table_shape(n, dimensions)
+        self.cell[:, 3:] = self.cell[:, :3] % self.table
         slots = int(np.prod(self.table))
         self.head = np.full(slots, -1, dtype=np.int64)
         self.occupancy = np.zeros(slots, dtype=np.int64)
         self.next = np.full(n, -1, dtype=np.int64)
         self.previous = np.full(n, -1, dtype=np.int64)
-        capacity = max(64, 16 * n)
-        self.heap_time = np.empty(capacity)
-        self.heap_int = np.empty((capacity, 6), dtype=np.int64)
         self.meta = np.zeros(ek.META_SIZE, dtype=np.int64)
-        # Stale entries are dropped once the heap holds a few per particle.
-        self.meta[ek.COMPACT_AT] = max(1024, COMPACT_PER_PARTICLE * n)
         if self.walls is not None:
             self.low = np.asarray(self.walls.low, float)
             self.high = np.asarray(self.walls.high, float)
         else:
             self.low, self.high = np.full(3, -np.inf), np.full(3, np.inf)
         own = state.restitution
-        self.own_e = np.full(n, np.nan) if own is None else np.asarray(own, float)
+        self.own_e = np.full(n, np.nan) if own is None else np.asarray(own, float)[self.perm]
         self.params = np.array([self.collapse_time, self.threshold, self.restitution,
                                 1.0 if self.walls is None else self.walls.restitution,
                                 self.cell_size])
         self.flags = np.array([dimensions, self.under_gravity, self.walls is not None,
                                own is not None, 0, 0], dtype=np.int64)
-        self.heap_time, self.heap_int = ek.build_events(
-            self.time, state.position, state.velocity, state.inv_mass, state.radius,
-            self.gravity, self.low, self.high, self.params, self.flags, self.cell, self.table,
-            self.head, self.next, self.previous, self.occupancy, self.ref_time, self.count,
-            self.own_next, self.heap_time, self.heap_int, self.meta)
+        ek.build_events(self.time, self.position, self.velocity, self.inv_mass, self.radius,
+                        self.gravity, self.low, self.high, self.params, self.flags, self.cell,
+                        self.table, self.head, self.next, self.previous, self.occupancy,
+                        self.clock, self.book, self.cand_time, self.cand_int, self.heap_key,
+                        self.heap_int, self.meta)
 
     def _choose_cell_size(self, state: ParticleState, dimensions: int) -> float:
         """Cells at least one contact diameter wide, ``particles_per_cell`` each."""
@@ -202,9 +220,11 @@ class EventDrivenStage(Stage):
 
     def _still_valid(self, state: ParticleState) -> bool:
         """Return whether ``state`` is the one left by the last step, untouched."""
-        return (state is self._state and len(state) == self.count.size
-                and np.array_equal(state.position, self._position_after)
-                and np.array_equal(state.velocity, self._velocity_after))
+        return (state is self._state and len(state) == self.book.shape[0]
+                and state.position.shape == self.position.shape
+                and ek.matches(state.position, state.velocity, state.inv_mass, state.radius,
+                               self.position, self.velocity, self.inv_mass, self.radius,
+                               self.perm))
 
     # -- the stage ---------------------------------------------------------
 
@@ -224,14 +244,13 @@ class EventDrivenStage(Stage):
             self._rebuild(state, ctx.dimensions)
         n = len(state)
         budget = max(MIN_EVENT_BUDGET, self.event_budget * n)
-        saved = (state.position.copy(), state.velocity.copy())
         end = self.time + ctx.dt
         record = ctx.impacts is not None
         self.flags[ek.F_RECORD] = record
         self.flags[ek.F_LOSSES] = ctx.losses is not None
         meta = self.meta
-        meta[[ek.RECORDED, ek.COLLISIONS, ek.WALL_COLLISIONS, ek.EVENTS, ek.BOOKED_PAIRS,
-              ek.BOOKED_WALLS]] = 0
+        meta[[ek.RECORDED, ek.COLLISIONS, ek.WALL_COLLISIONS, ek.EVENTS, ek.CHORES,
+              ek.BOOKED_PAIRS, ek.BOOKED_WALLS, ek.CROSSINGS, ek.PREDICTIONS, ek.REFRESHES]] = 0
         dissipated = ctx.stats.dissipated
         totals = np.array([dissipated.get('restitution', 0.0), dissipated.get('walls', 0.0)])
         losses = np.zeros(n if ctx.losses is not None else 0)
@@ -239,23 +258,33 @@ class EventDrivenStage(Stage):
         own = state.restitution         # read each step, as the law reads it at each impact
         self.flags[ek.F_OWN_E] = own is not None
         if own is not None:
-            self.own_e = np.asarray(own, float)
-        status, self.heap_time, self.heap_int, rec_f, rec_ij = ek.run_events(
-            end, budget, state.position, state.velocity, state.inv_mass, state.radius,
-            self.own_e, self.gravity, self.low, self.high, self.params, self.flags, self.cell,
-            self.table, self.head, self.next, self.previous, self.occupancy, self.ref_time,
-            self.last_impact, self.count, self.own_next, self.heap_time,
-            self.heap_int, meta, totals, losses, np.empty((rows, ek.RECORD_COLUMNS)),
-            np.empty((rows, 2), dtype=np.int64))
+            self.own_e = np.asarray(own, float)[self.perm]
+        rec_f = np.empty((rows, ek.RECORD_COLUMNS))
+        rec_ij = np.empty((rows, 2), dtype=np.int64)
+        while True:
+            status = ek.run_events(
+                end, budget, self.position, self.velocity, self.inv_mass, self.radius,
+                self.own_e, self.gravity, self.half_g, self.low, self.high, self.params,
+                self.flags, self.cell, self.table, self.head, self.next, self.previous,
+                self.occupancy, self.clock, self.book, self.cand_time, self.cand_int,
+                self.heap_key, self.heap_int, meta, totals, losses, rec_f, rec_ij, self.perm,
+                state.position, state.velocity)
+            if status != ek.GROW:
+                break
+            # The impact records are full: double them and let the loop go on.
+            rec_f = np.concatenate([rec_f, np.empty_like(rec_f)])
+            rec_ij = np.concatenate([rec_ij, np.empty_like(rec_ij)])
         if status != ek.DONE:
-            # Roll the step back and let the step solver take it.
-            state.position[:], state.velocity[:] = saved
+            # The world's state is untouched: let the step solver take the step.
             self._fallback_streak += 1
             self._hold = min(2 ** self._fallback_streak - 1, MAX_FALLBACK_HOLD)
             self._fallback_step(ctx)
             return
         self._fallback_streak = 0
         self.events += int(meta[ek.EVENTS])
+        self.impacts += int(meta[ek.COLLISIONS] + meta[ek.WALL_COLLISIONS])
+        self.crossings += int(meta[ek.CROSSINGS])
+        self.refreshes += int(meta[ek.REFRESHES])
         ctx.stats.collisions += int(meta[ek.COLLISIONS])
         ctx.stats.wall_collisions += int(meta[ek.WALL_COLLISIONS])
         # The totals were summed impact after impact, as bookings one by one would.
@@ -273,8 +302,6 @@ class EventDrivenStage(Stage):
                                rows_f[:, ek.R_NORMAL:ek.R_NORMAL + 3],
                                rows_f[:, ek.R_IMPULSE], 0.0, rows_f[:, ek.R_APPROACH])
         self.time = end
-        self._position_after = state.position.copy()
-        self._velocity_after = state.velocity.copy()
 
     def _fallback_step(self, ctx: StepContext) -> None:
         """Advance this step with the step solver (``EVENT_FALLBACK`` preset)."""
@@ -294,7 +321,8 @@ class EventDrivenStage(Stage):
     def describe(self) -> str:
         """Say what the stage does."""
         return ('exact event-driven: closed-form impact times (pairs, walls, gravity), '
-                f'heap with lazy invalidation, hash grid, TC model t_c = '
+                f'per-particle event lists in a heap of particles, lazy invalidation, '
+                f'hash grid (a crossing predicts the new layer of cells), TC model t_c = '
                 f'{self.collapse_time:g} s; a step with resting contact under gravity or '
                 f'more than {self.event_budget} events per particle is solved by the '
                 f'{EVENT_FALLBACK} step solver')
