@@ -62,9 +62,6 @@ from .narrowphase import line_of_action
 
 # Projection passes per step under gravity (one without: the lecture's).
 GRAVITY_PASSES = 4
-import os
-SLOP = float(os.environ.get('SLOP', '4e-3'))
-MAXP = int(os.environ.get('MAXP', '64'))
 # 'kernel' (compiled: contact_kernels.project_overlaps and pay_for_lift) and
 # 'numpy' (the vectorised reference); test/test_separation_kernels.py asserts
 # they move and book the same.
@@ -150,13 +147,12 @@ class SeparationStage(Stage):
             return
         gravity = np.asarray(gravity, float)
         start = ctx.state.position.copy()
-        touched_i, touched_j = self._converge(ctx, has_pairs, gravity)
+        self._project(ctx, has_pairs)
         s = ctx.state
         added = lift(s.inv_mass, s.position - start, gravity)   # delta U per particle
         budget = ctx.losses if ctx.losses is not None else np.zeros(len(s))
         if self.backend == 'kernel':
             i, j = (c.i, c.j) if has_pairs else (np.zeros(0, np.int64), np.zeros(0, np.int64))
-            i, j = np.concatenate([i, touched_i]), np.concatenate([j, touched_j])
             velocity = np.ascontiguousarray(s.velocity, dtype=float)
             paid = pay_for_lift(np.ascontiguousarray(s.position, dtype=float), start, velocity,
                                 np.ascontiguousarray(s.inv_mass, dtype=float),
@@ -172,36 +168,6 @@ class SeparationStage(Stage):
                 np.arange(len(s))
             paid = self._pay_for_lift(s, start, added, cluster, budget)
         ctx.book('separation', paid - added, np.arange(len(s)))
-
-    def _converge(self, ctx, has_pairs, gravity):
-        """EXPERIMENT: Gauss-Seidel projection."""
-        import math
-        from ..projection_kernels import project_contacts
-        s, c, dims, walls = ctx.state, ctx.contacts, ctx.dimensions, self.walls
-        if ctx.pair_i is not None:
-            ci, cj = ctx.pair_i, ctx.pair_j
-        elif has_pairs:
-            ci, cj = c.i, c.j
-        else:
-            ci = cj = np.zeros(0, dtype=np.int64)
-        ci = np.ascontiguousarray(ci, dtype=np.int64)
-        cj = np.ascontiguousarray(cj, dtype=np.int64)
-        planes = walls.planes(dims) if walls is not None else []
-        low = np.full(3, -np.inf) if walls is None else np.asarray(walls.low, dtype=float)
-        high = np.full(3, np.inf) if walls is None else np.asarray(walls.high, dtype=float)
-        position = np.ascontiguousarray(s.position, dtype=float)
-        self.passes, self.excess, i, j = project_contacts(
-            position, np.ascontiguousarray(s.velocity, dtype=float),
-            np.ascontiguousarray(s.inv_mass, dtype=float),
-            np.ascontiguousarray(s.radius, dtype=float),
-            np.ascontiguousarray(s.dynamic, dtype=np.bool_), ci, cj, gravity, True,
-            np.array([p[0] for p in planes], dtype=np.int64),
-            np.array([p[1] for p in planes], dtype=float),
-            np.array([p[2] for p in planes], dtype=float), low, high, dims,
-            walls is not None, 1.0, SLOP, 1e-3, MAXP)
-        if position is not s.position:
-            s.position[...] = position
-        return i, j
 
     @staticmethod
     def _pay_for_lift(state, start: np.ndarray, added: np.ndarray, cluster: np.ndarray,
