@@ -70,6 +70,10 @@ def potential(state: ParticleState, gravity: Optional[np.ndarray],
 def lift(inv_mass: np.ndarray, displacement: np.ndarray, gravity: np.ndarray) -> np.ndarray:
     """Return the potential energy each displacement adds, -m g . dx, J (0 if static)."""
     dyn = inv_mass > 0.0
+    if dyn.all():
+        # Every particle moves (no static one, none asleep): the same quotient
+        # without the two masks' temporaries.
+        return -(displacement @ gravity) / inv_mass
     return np.where(dyn, -(displacement @ gravity) / np.where(dyn, inv_mass, 1.0), 0.0)
 
 

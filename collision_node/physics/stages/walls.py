@@ -65,6 +65,8 @@ class WallStage(Stage):
         self.friction = friction
         self.backend = backend
         self._planes: dict = {}        # per dimensions: (axis, value, inward) arrays
+        # (dt, effects, gravity array, restitution threshold) of the last step.
+        self._per_dt: tuple = (None, None, None, 0.0)
 
     def run(self, ctx: StepContext) -> None:
         """Reflect and clamp in place; count wall impacts, book lost energy."""
@@ -81,15 +83,19 @@ class WallStage(Stage):
         s = ctx.state
         gravity = ctx.effects.gravity
         friction = self.friction is not None
+        if ctx.dt != self._per_dt[0] or ctx.effects is not self._per_dt[1]:
+            # The gravity vector and the threshold, computed once per dt.
+            self._per_dt = (ctx.dt, ctx.effects, np.zeros(3) if gravity is None
+                            else np.asarray(gravity, dtype=float),
+                            ctx.effects.threshold(ctx.dt))
         floats, ints, plane_start = wall_pass(
             s.position, s.velocity, _NO_SPIN if s.angular_velocity is None or not friction
             else s.angular_velocity, s.radius, s.inv_mass,
             _NONE if s.restitution is None else s.restitution, float(self.walls.restitution),
             _NONE if s.friction is None or not friction else s.friction,
             float(self.friction) if friction else 0.0, friction, planes[0], planes[1],
-            planes[2], gravity is not None,
-            np.zeros(3) if gravity is None else np.asarray(gravity, dtype=float), ctx.dt,
-            ctx.effects.threshold(ctx.dt), ctx.dimensions == 2)
+            planes[2], gravity is not None, self._per_dt[2], ctx.dt, self._per_dt[3],
+            ctx.dimensions == 2)
         if not ints.shape[0]:
             return
         # Book and record plane by plane, as the vectorised law does: the same
