@@ -103,7 +103,8 @@ class StepContext:
         (a static partner takes none).
         """
         removed = np.asarray(removed, dtype=float)
-        self.stats.add_dissipated(effect, float(removed.sum()))
+        # removed.sum() without the method's argument handling (the same reduction).
+        self.stats.add_dissipated(effect, float(np.add.reduce(removed, axis=None)))
         if self.losses is None or not removed.size:
             return
         inv_mass = self.state.inv_mass

@@ -14,7 +14,8 @@ operations in the same order as the numpy statements they replace:
 - ``all_finite``: the world's check that no position or velocity became
   NaN or inf;
 - ``add_losses`` and ``add_pair_losses``: ``StepContext.book``'s per-particle
-  attribution, the same sequential additions as ``np.add.at``.
+  attribution, the same sequential additions as ``np.add.at``;
+- ``finish_lift``: ``energy.lift``'s quotient -m g . dx without its masks.
 """
 
 from __future__ import annotations
@@ -102,6 +103,13 @@ def add_pair_losses(losses, inv_mass, i, j, removed):
         losses[j[k]] += removed[k] * (1.0 - w_i / (w_i + inv_mass[j[k]]))
 
 
+@njit(cache=True)
+def finish_lift(work, inv_mass):
+    """Turn ``work`` = dx . g into -m g . dx in place (0 where inv_mass is 0), ``energy.lift``."""
+    for p in range(work.size):
+        work[p] = -work[p] / inv_mass[p] if inv_mass[p] > 0.0 else 0.0
+
+
 def warm_up() -> None:
     """Call each kernel once on a tiny problem (compiles or loads from the cache)."""
     position, velocity = np.zeros((2, 3)), np.ones((2, 3))
@@ -113,8 +121,10 @@ def warm_up() -> None:
     pair = np.array([0], dtype=np.int64), np.array([1], dtype=np.int64)
     add_losses(np.zeros(2), pair[0], np.ones(1))
     add_pair_losses(np.zeros(2), inv_mass, pair[0], pair[1], np.ones(1))
+    finish_lift(np.ones(2), inv_mass)
 
 
 def kernels() -> list:
     """Return the compiled kernels of this module (for ``kernels.prepare``)."""
-    return [apply_gravity, rotate_orientations, all_finite, add_losses, add_pair_losses]
+    return [apply_gravity, rotate_orientations, all_finite, add_losses, add_pair_losses,
+            finish_lift]

@@ -40,8 +40,8 @@ from ..contact_law import (apply_wall_friction, record_walls, reflect_on_plane,
 from ..effects import Walls
 from ..impacts import WALL
 from ..step import Stage, StepContext
-from ..wall_kernels import (APPROACH, BACK, FRICTION_LOSS, IMPACT, NORMAL_IMPULSE, PARTICLE,
-                            POINT, TANGENTIAL, WALLS_LOSS, wall_pass)
+from ..wall_kernels import (APPROACH, BACK, FRICTION_LOSS, NORMAL_IMPULSE, PARTICLE, POINT,
+                            TANGENTIAL, WALLS_LOSS, wall_pass)
 
 BACKENDS = ('kernel', 'numpy')
 _NONE = np.zeros(0)
@@ -88,7 +88,7 @@ class WallStage(Stage):
             self._per_dt = (ctx.dt, ctx.effects, np.zeros(3) if gravity is None
                             else np.asarray(gravity, dtype=float),
                             ctx.effects.threshold(ctx.dt))
-        floats, ints, plane_start = wall_pass(
+        floats, ints, group_start = wall_pass(
             s.position, s.velocity, _NO_SPIN if s.angular_velocity is None or not friction
             else s.angular_velocity, s.radius, s.inv_mass,
             _NONE if s.restitution is None else s.restitution, float(self.walls.restitution),
@@ -100,23 +100,20 @@ class WallStage(Stage):
             return
         # Book and record plane by plane, as the vectorised law does: the same
         # arrays in the same order give the same totals to the last bit.
+        starts = group_start.tolist()
         for k, (axis, plane, inward) in enumerate(planes[3]):
-            rows = slice(plane_start[k], plane_start[k + 1])
-            if rows.start == rows.stop:
+            low, middle, high = starts[2 * k], starts[2 * k + 1], starts[2 * k + 2]
+            if low < middle:
+                ctx.book('walls', np.ascontiguousarray(floats[low:middle, WALLS_LOSS]),
+                         np.ascontiguousarray(ints[low:middle, PARTICLE]))
+            if middle == high:
                 continue
-            impact = ints[rows, IMPACT] == 1
-            particle = ints[rows, PARTICLE]
-            if not impact.all():
-                rest = ~impact
-                ctx.book('walls', floats[rows, WALLS_LOSS][rest], particle[rest])
-            if not impact.any():
-                continue
-            hit = particle[impact]
-            row = floats[rows][impact]
-            ctx.stats.wall_collisions += int(hit.size)
-            ctx.book('walls', row[:, WALLS_LOSS], hit)
+            hit = np.ascontiguousarray(ints[middle:high, PARTICLE])
+            row = floats[middle:high]
+            ctx.stats.wall_collisions += high - middle
+            ctx.book('walls', np.ascontiguousarray(row[:, WALLS_LOSS]), hit)
             if friction:
-                ctx.book('friction', row[:, FRICTION_LOSS], hit)
+                ctx.book('friction', np.ascontiguousarray(row[:, FRICTION_LOSS]), hit)
             if ctx.impacts is not None:
                 normal = np.zeros((hit.size, 3))
                 normal[:, axis] = inward
