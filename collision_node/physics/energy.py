@@ -23,6 +23,7 @@ from typing import Optional
 import numpy as np
 
 from .state import ParticleState
+from .step_kernels import finish_lift
 
 SPHERE_INERTIA = 0.4       # I = 0.4 m r^2 (solid sphere)
 # Spacing of the points potential energy may be measured from, m: a power of
@@ -69,8 +70,14 @@ def potential(state: ParticleState, gravity: Optional[np.ndarray],
 
 def lift(inv_mass: np.ndarray, displacement: np.ndarray, gravity: np.ndarray) -> np.ndarray:
     """Return the potential energy each displacement adds, -m g . dx, J (0 if static)."""
+    work = displacement @ gravity
+    if work.dtype == np.float64 and work.ndim == 1 and inv_mass.dtype == np.float64 \
+            and inv_mass.shape == work.shape:
+        # One compiled pass over the masks' np.where (the same quotient).
+        finish_lift(work, inv_mass)
+        return work
     dyn = inv_mass > 0.0
-    return np.where(dyn, -(displacement @ gravity) / np.where(dyn, inv_mass, 1.0), 0.0)
+    return np.where(dyn, -work / np.where(dyn, inv_mass, 1.0), 0.0)
 
 
 def reference_point(state: ParticleState) -> np.ndarray:

@@ -129,6 +129,29 @@ def near_sleepers(position, radius, velocity, awake, sleepers, margin, dt, sag, 
     return hit
 
 
+@njit(cache=True)
+def sleepers_within_reach(position, radius, velocity, awake, sleepers, margin, dt, sag):
+    """Return the mask of ``sleepers`` within waking reach of any of ``awake``.
+
+    Every pair is tested with ``near_sleepers``' test (no tree), which for
+    a few hundred particles costs less than building the tree's query.
+    """
+    hit = np.zeros(sleepers.size, dtype=np.bool_)
+    for q in range(awake.size):
+        a = awake[q]
+        travel = _travel(velocity, a, dt, sag)
+        for k in range(sleepers.size):
+            if hit[k]:
+                continue
+            b = sleepers[k]
+            reach = (1.0 + margin) * (radius[a] + radius[b]) + travel
+            dx = position[a, 0] - position[b, 0]
+            dy = position[a, 1] - position[b, 1]
+            dz = position[a, 2] - position[b, 2]
+            hit[k] = dx * dx + dy * dy + dz * dz <= reach * reach
+    return hit
+
+
 def warm_up() -> None:
     """Call each kernel once on a tiny problem (compiles or loads from the cache)."""
     position = np.array([[0.0, 0.0, 0.0], [1.9, 0.0, 0.0]])
@@ -140,8 +163,9 @@ def warm_up() -> None:
                    0.02, 0.0, np.zeros(2), 0.01, 0.1, 0.5)
     near_sleepers(position, radius, velocity, pair[0], pair[1], 0.02, 0.01, 0.0, pair[0],
                   pair[0])
+    sleepers_within_reach(position, radius, velocity, pair[0], pair[1], 0.02, 0.01, 0.0)
 
 
 def kernels() -> list:
     """Return the compiled kernels of this module (for ``kernels.prepare``)."""
-    return [settle_islands, near_sleepers]
+    return [settle_islands, near_sleepers, sleepers_within_reach]

@@ -16,6 +16,7 @@ from .accuracy import AccuracySettings
 from .effects import Effects
 from .impacts import ImpactLog
 from .state import ParticleState
+from .step_kernels import add_losses, add_pair_losses
 
 
 @dataclass
@@ -102,8 +103,23 @@ class StepContext:
         (a static partner takes none).
         """
         removed = np.asarray(removed, dtype=float)
-        self.stats.add_dissipated(effect, float(removed.sum()))
+        # removed.sum() without the method's argument handling (the same reduction).
+        self.stats.add_dissipated(effect, float(np.add.reduce(removed, axis=None)))
         if self.losses is None or not removed.size:
+            return
+        inv_mass = self.state.inv_mass
+        if _compiled_rows(removed, i) and (j is None or (
+                _compiled_rows(removed, j) and inv_mass.dtype == np.float64
+                and inv_mass.flags.c_contiguous)):
+            # The compiled loops make np.add.at's additions in its order, without
+            # its set-up and temporaries (a step books a few times per stage);
+            # they take contiguous arrays (one compiled version, warmed up).
+            removed = np.ascontiguousarray(removed)
+            if j is None:
+                add_losses(self.losses, np.ascontiguousarray(i), removed)
+            else:
+                add_pair_losses(self.losses, inv_mass, np.ascontiguousarray(i),
+                                np.ascontiguousarray(j), removed)
             return
         if j is None:
             np.add.at(self.losses, i, removed)
@@ -112,6 +128,12 @@ class StepContext:
         share_i = w_i / (w_i + w_j)
         np.add.at(self.losses, i, removed * share_i)
         np.add.at(self.losses, j, removed * (1.0 - share_i))
+
+
+def _compiled_rows(removed: np.ndarray, rows) -> bool:
+    """Say whether ``book``'s compiled loops take these arrays (else numpy's add.at does)."""
+    return (isinstance(rows, np.ndarray) and rows.dtype == np.int64 and rows.ndim == 1
+            and removed.ndim == 1 and rows.shape[0] == removed.shape[0])
 
 
 class Stage:

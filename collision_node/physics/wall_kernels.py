@@ -7,9 +7,10 @@ formulas in the same order of floating-point operations to one particle
 at a time, visiting each particle's planes in the stage's order (a
 particle's result at one plane depends only on its own state, so particle
 by particle is the same as plane by plane). It returns one row per
-particle found past a plane, sorted plane by plane and by particle within
-a plane, so the stage books the energy and records the impacts with the
-same arrays, in the same order, as the vectorised path
+particle found past a plane, sorted plane by plane (put-back rows, then
+impacts) and by particle within each, so the stage books the energy and
+records the impacts with the same arrays, in the same order, as the
+vectorised path
 (``test/test_wall_kernels.py`` asserts identical states and bookings).
 """
 
@@ -51,8 +52,10 @@ def wall_pass(position, velocity, angular, radius, inv_mass, own_rest, wall_rest
     ``own_rest``/``own_mu``: per-particle coefficients (NaN: none), or
     empty arrays when no particle has one. ``gravity`` (3,) counts only
     ``has_gravity`` (else g_n = 0.0, exactly as the vectorised law). Returns
-    (floats, ints, plane_start): rows sorted by plane then particle,
-    plane k's rows at plane_start[k] .. plane_start[k + 1] - 1.
+    (floats, ints, group_start): rows sorted by plane, then put back
+    before impacts, then particle: plane k's put-back rows at
+    group_start[2 k] .. group_start[2 k + 1] - 1, its impacts from there to
+    group_start[2 k + 2] - 1.
     """
     n = position.shape[0]
     planes = axis.size
@@ -135,21 +138,24 @@ def wall_pass(position, velocity, angular, radius, inv_mass, own_rest, wall_rest
                 floats[count, POINT + d] = position[p, d]
             floats[count, POINT + ax] = plane
             count += 1
-    # Plane by plane (a stable counting sort: particles stay ascending).
-    plane_start = np.zeros(planes + 1, dtype=np.int64)
+    # Plane by plane, and within a plane the put-back rows before the impacts
+    # (a stable counting sort on 2 plane + impact: particles stay ascending).
+    groups = 2 * planes
+    group_start = np.zeros(groups + 1, dtype=np.int64)
     for r in range(count):
-        plane_start[ints[r, PLANE] + 1] += 1
-    for k in range(planes):
-        plane_start[k + 1] += plane_start[k]
-    fill = plane_start[:planes].copy()
+        group_start[2 * ints[r, PLANE] + ints[r, IMPACT] + 1] += 1
+    for k in range(groups):
+        group_start[k + 1] += group_start[k]
+    fill = group_start[:groups].copy()
     sorted_f = np.empty((count, FLOAT_COLUMNS))
     sorted_i = np.empty((count, 3), dtype=np.int64)
     for r in range(count):
-        at = fill[ints[r, PLANE]]
-        fill[ints[r, PLANE]] += 1
+        g = 2 * ints[r, PLANE] + ints[r, IMPACT]
+        at = fill[g]
+        fill[g] += 1
         sorted_f[at] = floats[r]
         sorted_i[at] = ints[r]
-    return sorted_f, sorted_i, plane_start
+    return sorted_f, sorted_i, group_start
 
 
 def warm_up() -> None:

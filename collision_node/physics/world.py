@@ -20,9 +20,18 @@ from .particles import MAX_SPEED
 from .plan import build_pipeline
 from .stages.sleep import asleep_count, sleepers_touching, wake_islands
 from .step import StepContext, StepStats
+from .step_kernels import all_finite
 from .scene import Scene, parse_spawn
 from .state import ParticleState
 from .validation import SceneError, fail
+
+
+_NO_SPIN = np.zeros((0, 3))
+
+
+def _float_rows(a: np.ndarray) -> bool:
+    """Say whether ``a`` is a C-contiguous float64 array of 3-vectors (the compiled check's)."""
+    return a.dtype == np.float64 and a.ndim == 2 and a.shape[1] == 3 and a.flags.c_contiguous
 
 
 class NonFiniteStateError(FloatingPointError):
@@ -85,16 +94,16 @@ class World:
 
     def step(self, count: int = 1) -> None:
         """Advance ``count`` steps of dt, each split into the preset's substeps."""
-        substeps = self.scene.accuracy.substeps
-        sub_dt = self.scene.dt / substeps
+        scene = self.scene
+        substeps = scene.accuracy.substeps
+        sub_dt = scene.dt / substeps
+        run = self.pipeline.run
         for _ in range(count):
+            start = self.time
             for k in range(substeps):
-                ctx = StepContext(state=self.state, dt=sub_dt,
-                                  dimensions=self.scene.dimensions,
-                                  effects=self.scene.effects, accuracy=self.scene.accuracy,
-                                  stats=self.stats, time=self.time + k * sub_dt,
-                                  impacts=self.impact_log)
-                self.pipeline.run(ctx)
+                run(StepContext(self.state, sub_dt, scene.dimensions, scene.effects,
+                                scene.accuracy, self.stats, time=start + k * sub_dt,
+                                impacts=self.impact_log))
             self.steps += 1
             self._check_finite()
 
@@ -111,9 +120,13 @@ class World:
     def _check_finite(self) -> None:
         """Raise instead of letting NaN or inf spread through the state."""
         s = self.state
-        finite = np.isfinite(s.position).all() and np.isfinite(s.velocity).all()
-        if s.angular_velocity is not None:
-            finite = finite and np.isfinite(s.angular_velocity).all()
+        spin = _NO_SPIN if s.angular_velocity is None else s.angular_velocity
+        if _float_rows(s.position) and _float_rows(s.velocity) and _float_rows(spin):
+            # One compiled pass instead of three isfinite arrays and reductions.
+            finite = all_finite(s.position, s.velocity, spin)
+        else:
+            finite = bool(np.isfinite(s.position).all() and np.isfinite(s.velocity).all()
+                          and np.isfinite(spin).all())
         if not finite:
             raise NonFiniteStateError(f'step {self.steps}: a position or velocity became '
                                       'non-finite')

@@ -12,6 +12,12 @@ from __future__ import annotations
 import numpy as np
 
 from ..step import Stage, StepContext
+from ..step_kernels import apply_gravity
+
+
+def _rows(a: np.ndarray) -> bool:
+    """Say whether ``a`` is a C-contiguous float64 (n, 3) array (what the kernel takes)."""
+    return a.dtype == np.float64 and a.ndim == 2 and a.shape[1] == 3 and a.flags.c_contiguous
 
 
 class GravityStage(Stage):
@@ -22,12 +28,22 @@ class GravityStage(Stage):
     def __init__(self, gravity: np.ndarray) -> None:
         """Keep g, m/s^2."""
         self.gravity = np.asarray(gravity, dtype=float)
+        self._dt = None
+        self._shift = self._kick = np.zeros(3)
 
     def run(self, ctx: StepContext) -> None:
         """Add g dt^2 / 2 to positions and g dt to velocities of dynamic particles."""
         s = ctx.state
-        shift = 0.5 * ctx.dt * ctx.dt * self.gravity
-        kick = ctx.dt * self.gravity
+        if ctx.dt != self._dt:
+            # The same few products every step: computed once per dt.
+            self._shift = 0.5 * ctx.dt * ctx.dt * self.gravity
+            self._kick = ctx.dt * self.gravity
+            self._dt = ctx.dt
+        shift, kick = self._shift, self._kick
+        if _rows(s.position) and _rows(s.velocity) and s.inv_mass.dtype == np.float64:
+            # One compiled pass, the same additions (sleepers have inv_mass 0).
+            apply_gravity(s.position, s.velocity, s.inv_mass, shift, kick)
+            return
         if s.inv_mass.all():
             s.position += shift
             s.velocity += kick

@@ -41,7 +41,7 @@ from scipy.spatial import cKDTree
 
 from .. import energy
 from ..effects import GRAVITY_THRESHOLD_STEPS
-from ..sleep_kernels import near_sleepers, settle_islands
+from ..sleep_kernels import near_sleepers, settle_islands, sleepers_within_reach
 from ..state import ParticleState
 from ..step import Pipeline, Stage, StepContext
 
@@ -49,6 +49,16 @@ from ..step import Pipeline, Stage, StepContext
 # for islands and waking: resting contacts end a step touching up to the
 # solver's slop, and the broadphase's list always holds pairs this near.
 CONTACT_MARGIN = 0.02
+# Up to this many (awake, sleeping) pairs the wake stage tests every pair
+# directly; beyond, a k-d tree of the sleepers finds the candidates.
+DIRECT_PAIRS = 1 << 15
+_NO_PAIRS = np.zeros(0, dtype=np.int64)
+_NO_SPIN = np.zeros((0, 3))
+
+
+def _rows(a: np.ndarray) -> bool:
+    """Say whether ``a`` is a C-contiguous float64 (n, 3) array (what the kernels take)."""
+    return a.dtype == np.float64 and a.ndim == 2 and a.shape[1] == 3 and a.flags.c_contiguous
 
 
 def sleep_speed(gravity: np.ndarray, dt: float) -> float:
@@ -117,12 +127,12 @@ class WakeStage(Stage):
         """Wake what awake particles reach this step, then hide the sleepers' mass."""
         s = ctx.state
         ensure_sleep_arrays(s)
-        dynamic = s.inv_mass > 0.0
-        awake = np.flatnonzero(dynamic & ~s.asleep)
-        self.shared.anyone_awake = bool(awake.size)
         self.shared.real_inv_mass = None
         if not s.asleep.any():
+            self.shared.anyone_awake = bool((s.inv_mass > 0.0).any())
             return
+        awake = np.flatnonzero((s.inv_mass > 0.0) & ~s.asleep)
+        self.shared.anyone_awake = bool(awake.size)
         if awake.size:
             self._wake_near(ctx, awake)
         if s.asleep.any():
@@ -133,13 +143,22 @@ class WakeStage(Stage):
         """Wake the islands of sleeping particles within waking reach of ``awake``."""
         s = ctx.state
         sleepers = np.flatnonzero(s.asleep)
+        dt = ctx.dt
+        sag = self.sag * dt * dt
+        if awake.size * sleepers.size <= DIRECT_PAIRS and _rows(s.position) \
+                and _rows(s.velocity):
+            # Few particles: test every pair in one compiled loop (the same
+            # test as below, without the tree's query and its Python lists).
+            near = sleepers_within_reach(s.position, s.radius, s.velocity, awake, sleepers,
+                                         CONTACT_MARGIN, dt, sag)
+            if near.any():
+                wake_islands(s, sleepers[near], reset=False)
+            return
         ids = s.ids[sleepers]
         if self._tree is None or not np.array_equal(ids, self._tree_ids):
             # Sleeping particles do not move: the tree lasts while the set does.
             self._tree = cKDTree(s.position[sleepers])
             self._tree_ids = ids
-        dt = ctx.dt
-        sag = self.sag * dt * dt
         speed = np.sqrt(np.einsum('ij,ij->i', s.velocity[awake], s.velocity[awake]))
         reach = ((1.0 + CONTACT_MARGIN) * (s.radius[awake] + float(s.radius[sleepers].max()))
                  + speed * dt + sag) * (1.0 + 1e-9)
@@ -171,6 +190,8 @@ class SleepStage(Stage):
         self.shared = shared
         self.gravity = np.asarray(gravity, dtype=float)
         self.sleep_time = float(sleep_time)
+        self._dt: Optional[float] = None
+        self._sag = self._speed = 0.0
 
     def run(self, ctx: StepContext) -> None:
         """Decide which islands sleep after this step."""
@@ -182,6 +203,11 @@ class SleepStage(Stage):
             return
         n = len(s)
         dt = ctx.dt
+        if dt != self._dt:
+            # The sleep speed and the sag, computed once per dt.
+            self._dt = dt
+            self._sag = 0.5 * float(np.linalg.norm(self.gravity)) * dt * dt
+            self._speed = sleep_speed(self.gravity, dt)
         rep = np.full(n, -1, dtype=np.int64)
         sleeping = np.flatnonzero(s.asleep)
         if sleeping.size:
@@ -189,14 +215,13 @@ class SleepStage(Stage):
             # A representative always exists (a delete wakes its island); if
             # not, the particle stands for itself.
             rep[sleeping] = np.where(s.ids[rows] == s.island[sleeping], rows, sleeping)
-        pair_i = ctx.pair_i if ctx.pair_i is not None else np.zeros(0, dtype=np.int64)
-        pair_j = ctx.pair_j if ctx.pair_j is not None else np.zeros(0, dtype=np.int64)
-        angular = s.angular_velocity if s.angular_velocity is not None else np.zeros((0, 3))
-        sag = 0.5 * float(np.linalg.norm(self.gravity)) * dt * dt
+        pair_i = ctx.pair_i if ctx.pair_i is not None else _NO_PAIRS
+        pair_j = ctx.pair_j if ctx.pair_j is not None else _NO_PAIRS
+        angular = s.angular_velocity if s.angular_velocity is not None else _NO_SPIN
         fell = settle_islands(s.position, s.velocity, angular, s.radius, s.inv_mass > 0.0,
                               s.asleep, rep, np.ascontiguousarray(pair_i, dtype=np.int64),
-                              np.ascontiguousarray(pair_j, dtype=np.int64), CONTACT_MARGIN, sag,
-                              s.still_time, dt, sleep_speed(self.gravity, dt), self.sleep_time)
+                              np.ascontiguousarray(pair_j, dtype=np.int64), CONTACT_MARGIN,
+                              self._sag, s.still_time, dt, self._speed, self.sleep_time)
         s.island = np.where(s.asleep, s.ids[np.maximum(rep, 0)], -1)
         rows = np.flatnonzero(fell)
         if rows.size:

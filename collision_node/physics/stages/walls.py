@@ -40,8 +40,8 @@ from ..contact_law import (apply_wall_friction, record_walls, reflect_on_plane,
 from ..effects import Walls
 from ..impacts import WALL
 from ..step import Stage, StepContext
-from ..wall_kernels import (APPROACH, BACK, FRICTION_LOSS, IMPACT, NORMAL_IMPULSE, PARTICLE,
-                            POINT, TANGENTIAL, WALLS_LOSS, wall_pass)
+from ..wall_kernels import (APPROACH, BACK, FRICTION_LOSS, NORMAL_IMPULSE, PARTICLE, POINT,
+                            TANGENTIAL, WALLS_LOSS, wall_pass)
 
 BACKENDS = ('kernel', 'numpy')
 _NONE = np.zeros(0)
@@ -65,6 +65,8 @@ class WallStage(Stage):
         self.friction = friction
         self.backend = backend
         self._planes: dict = {}        # per dimensions: (axis, value, inward) arrays
+        # (dt, effects, gravity array, restitution threshold) of the last step.
+        self._per_dt: tuple = (None, None, None, 0.0)
 
     def run(self, ctx: StepContext) -> None:
         """Reflect and clamp in place; count wall impacts, book lost energy."""
@@ -81,36 +83,37 @@ class WallStage(Stage):
         s = ctx.state
         gravity = ctx.effects.gravity
         friction = self.friction is not None
-        floats, ints, plane_start = wall_pass(
+        if ctx.dt != self._per_dt[0] or ctx.effects is not self._per_dt[1]:
+            # The gravity vector and the threshold, computed once per dt.
+            self._per_dt = (ctx.dt, ctx.effects, np.zeros(3) if gravity is None
+                            else np.asarray(gravity, dtype=float),
+                            ctx.effects.threshold(ctx.dt))
+        floats, ints, group_start = wall_pass(
             s.position, s.velocity, _NO_SPIN if s.angular_velocity is None or not friction
             else s.angular_velocity, s.radius, s.inv_mass,
             _NONE if s.restitution is None else s.restitution, float(self.walls.restitution),
             _NONE if s.friction is None or not friction else s.friction,
             float(self.friction) if friction else 0.0, friction, planes[0], planes[1],
-            planes[2], gravity is not None,
-            np.zeros(3) if gravity is None else np.asarray(gravity, dtype=float), ctx.dt,
-            ctx.effects.threshold(ctx.dt), ctx.dimensions == 2)
+            planes[2], gravity is not None, self._per_dt[2], ctx.dt, self._per_dt[3],
+            ctx.dimensions == 2)
         if not ints.shape[0]:
             return
         # Book and record plane by plane, as the vectorised law does: the same
         # arrays in the same order give the same totals to the last bit.
+        starts = group_start.tolist()
         for k, (axis, plane, inward) in enumerate(planes[3]):
-            rows = slice(plane_start[k], plane_start[k + 1])
-            if rows.start == rows.stop:
+            low, middle, high = starts[2 * k], starts[2 * k + 1], starts[2 * k + 2]
+            if low < middle:
+                ctx.book('walls', np.ascontiguousarray(floats[low:middle, WALLS_LOSS]),
+                         np.ascontiguousarray(ints[low:middle, PARTICLE]))
+            if middle == high:
                 continue
-            impact = ints[rows, IMPACT] == 1
-            particle = ints[rows, PARTICLE]
-            if not impact.all():
-                rest = ~impact
-                ctx.book('walls', floats[rows, WALLS_LOSS][rest], particle[rest])
-            if not impact.any():
-                continue
-            hit = particle[impact]
-            row = floats[rows][impact]
-            ctx.stats.wall_collisions += int(hit.size)
-            ctx.book('walls', row[:, WALLS_LOSS], hit)
+            hit = np.ascontiguousarray(ints[middle:high, PARTICLE])
+            row = floats[middle:high]
+            ctx.stats.wall_collisions += high - middle
+            ctx.book('walls', np.ascontiguousarray(row[:, WALLS_LOSS]), hit)
             if friction:
-                ctx.book('friction', row[:, FRICTION_LOSS], hit)
+                ctx.book('friction', np.ascontiguousarray(row[:, FRICTION_LOSS]), hit)
             if ctx.impacts is not None:
                 normal = np.zeros((hit.size, 3))
                 normal[:, axis] = inward
