@@ -484,8 +484,13 @@ def movers(position, built, extra, half_skin):
 
 
 @njit(cache=True)
-def merge_keys(keys, a, b, n):
-    """Return sorted ``keys`` (i * n + j) joined with pairs (a, b): ordered, i != j, no repeats."""
+def merge_pairs(keys, list_i, list_j, a, b, n):
+    """Return the listed pairs joined with pairs (a, b): sorted by (i, j), i != j, no repeats.
+
+    ``keys`` are the sorted i * n + j of the listed pairs (``list_i``,
+    ``list_j``). The listed pairs are copied, not split from their keys:
+    two integer divisions per pair cost more than the whole merge.
+    """
     add = np.empty(a.size, dtype=np.int64)
     count = 0
     for p in range(a.size):
@@ -493,19 +498,25 @@ def merge_keys(keys, a, b, n):
             add[count] = min(a[p], b[p]) * n + max(a[p], b[p])
             count += 1
     add = np.sort(add[:count])
-    out = np.empty(keys.size + count, dtype=np.int64)
+    out_i = np.empty(keys.size + count, dtype=np.int64)
+    out_j = np.empty(keys.size + count, dtype=np.int64)
     s = t = m = 0
+    last = -1
     while s < keys.size or t < count:
         if t == count or (s < keys.size and keys[s] <= add[t]):
             value = keys[s]
+            if value != last:
+                out_i[m], out_j[m] = list_i[s], list_j[s]
+                m += 1
             s += 1
         else:
             value = add[t]
+            if value != last:
+                out_i[m], out_j[m] = value // n, value % n
+                m += 1
             t += 1
-        if m == 0 or out[m - 1] != value:
-            out[m] = value
-            m += 1
-    return out[:m]
+        last = value
+    return out_i[:m], out_j[:m]
 
 
 def as_points(position: np.ndarray) -> np.ndarray:
@@ -537,10 +548,10 @@ def warm_up() -> None:
     query = np.array([0], dtype=np.int64)
     a, b = grid_query(position, query, reach[query], *partner_terms(reach, grid), *grid)
     keys = np.array([1], dtype=np.int64)
-    merge_keys(keys, a, b, 3)
+    merge_pairs(keys, keys // 3, keys % 3, a, b, 3)
     movers(position, position, np.zeros(3), 0.5)
 
 
 def kernels() -> list:
     """Return the compiled kernels of this module (for the cache check)."""
-    return [build_grid, grid_pairs, grid_query, movers, merge_keys, sort_pairs]
+    return [build_grid, grid_pairs, grid_query, movers, merge_pairs, sort_pairs]
