@@ -20,6 +20,13 @@ vectorised ``_near`` written in the same floating-point order, so the
 result is exactly the set the k-d tree search gave; pairs come out sorted
 by (i, j) (a counting sort by i, then each row sorted by j).
 
+A scene of one size class in a dense table (a gas) takes a shorter path,
+``_dense_pairs``: cells are a little wider than any search (CELL_MARGIN),
+so each item scans its own row of cells from itself on and the next four
+rows in cell order (the later half of the 3 x 3 rows around it), without
+computing a search box; every candidate is written and kept by the count
+(no branch on the near test). The set and order are the same.
+
 Cell indices are measured from the lowest corner of all particles and the
 cell is never narrower than the scene's extent / 2^40, so they fit in
 64-bit integers at any scale (a wider cell only adds candidates; the exact
