@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from collision_node import World, parse_scene
+from collision_node.physics import grid_kernels
 from collision_node.physics.step import Stage, StepContext
 from collision_node.physics.stages import broadphase as broadphase_module
 from collision_node.physics.stages.broadphase import BroadphaseStage, candidate_pairs
@@ -269,3 +270,34 @@ def test_mover_queries_equal_a_fresh_search():
     found = set(zip(i.tolist(), j.tolist()))
     assert near_pairs(moved, radius) <= found
     assert np.all(np.diff(i * count + j) > 0)
+
+
+@pytest.mark.parametrize('dimensions', [2, 3])
+@pytest.mark.parametrize('scale, offset', [(1.0, 0.0), (1e-6, 1.0), (1e3, -1e9)])
+def test_one_size_gas_takes_the_neighbour_row_scan_and_equals_brute_force(
+        dimensions, scale, offset):
+    # One size class in a dense table (a gas): grid_pairs scans the five later
+    # rows of neighbour cells. A lattice at spacing exactly reach_i + reach_j
+    # (pairs on the limit, cells at the lattice's corners) and a random gas
+    # with reaches varying by 30 % must give brute force's set, sorted.
+    rng = np.random.default_rng(int(dimensions + 3 * np.log10(scale) + 50))
+    side = 14 if dimensions == 3 else 40
+    axes = np.meshgrid(*[np.arange(side, dtype=float)] * dimensions, indexing='ij')
+    lattice = np.stack([a.ravel() for a in axes], axis=1)
+    gas = rng.uniform(0.0, side, (lattice.shape[0], dimensions))
+    for position, reach in ((offset + scale * lattice, np.full(lattice.shape[0], 0.5 * scale)),
+                            (offset + scale * gas,
+                             scale * rng.uniform(0.35, 0.45, lattice.shape[0]))):
+        grid = grid_kernels.make_grid(position, reach, broadphase_module.size_classes(reach))
+        assert grid.class_start.size == 2 and grid.dense[0]
+        i, j = candidate_pairs(position, reach)
+        # The exact test with its slack (pairs on the limit are kept).
+        a, b = np.triu_indices(reach.size, k=1)
+        offset_ab = position[a] - position[b]
+        limit = reach[a] + reach[b]
+        hit = np.einsum('ij,ij->i', offset_ab, offset_ab) <= limit * limit * (
+            1.0 + broadphase_module.QUERY_SLACK)
+        expected = set(zip(a[hit].tolist(), b[hit].tolist()))
+        assert len(expected) > position.shape[0] // 2
+        assert set(zip(i.tolist(), j.tolist())) == expected
+        assert np.all(i < j) and np.all(np.diff(i * reach.size + j) > 0)

@@ -20,6 +20,13 @@ vectorised ``_near`` written in the same floating-point order, so the
 result is exactly the set the k-d tree search gave; pairs come out sorted
 by (i, j) (a counting sort by i, then each row sorted by j).
 
+A scene of one size class in a dense table (a gas) takes a shorter path,
+``_dense_pairs``: cells are a little wider than any search (CELL_MARGIN),
+so each item scans its own row of cells from itself on and the next four
+rows in cell order (the later half of the 3 x 3 rows around it), without
+computing a search box; every candidate is written and kept by the count
+(no branch on the near test). The set and order are the same.
+
 Cell indices are measured from the lowest corner of all particles and the
 cell is never narrower than the scene's extent / 2^40, so they fit in
 64-bit integers at any scale (a wider cell only adds candidates; the exact
@@ -55,6 +62,14 @@ CELL_REACHES = 2.0
 # A class whose occupied box has at most this many cells per particle (plus
 # a few) gets a dense table: no hashing, rows of cells read in one range.
 DENSE_CELLS_PER_ITEM = 16.0
+# Cells are this much wider than CELL_REACHES reaches: a search (at most two
+# reaches plus SCAN_SLACK) then stays within one cell of the query's cell
+# even after the rounding of (x - corner) / cell (at most about 2^-24 cells
+# in a dense table), so a dense class can scan its neighbour cells without
+# computing the search box (``_dense_pairs``).
+CELL_MARGIN = 4e-6
+# The bound on the cells per axis that rounding argument assumes.
+DENSE_AXIS_CELLS = 2 ** 24
 _H1, _H2, _H3 = 0x9E3779B97F4A7C15 - (1 << 64), 0xC2B2AE3D27D4EB4F - (1 << 64), 0x165667B19E3779F9
 
 
@@ -124,7 +139,8 @@ def build_grid(position, reach, order, class_start):
         for m in range(class_start[k], class_start[k + 1]):
             largest = max(largest, reach[order[m]])
         class_reach[k] = largest
-        width = max(CELL_REACHES * largest, extent / MAX_CELLS_PER_AXIS)
+        width = max(CELL_REACHES * largest * (1.0 + CELL_MARGIN),
+                    extent / MAX_CELLS_PER_AXIS)
         cell[k] = width if width > 0.0 else 1.0
         for d in range(3):
             low[k, d], high[k, d] = np.iinfo(np.int64).max, np.iinfo(np.int64).min
@@ -302,6 +318,81 @@ def sort_pairs(a, b, count, n):
     return i, j
 
 
+@njit(cache=True, inline='always')
+def _append_near(t0, t1, x, y, z, own, query, item, item_position, partner, out_a, out_b,
+                 count):
+    """Append (query, item[t]) for items t0 <= t < t1 near (x, y, z); return the new count.
+
+    Branch-free: every candidate is written and the count advances only
+    for a near one (the caller guarantees room for t1 - t0 more pairs), so
+    a near test that is true one time in six costs no mispredicted branch.
+    """
+    for t in range(t0, t1):
+        out_a[count] = query
+        out_b[count] = item[t]
+        count += _near(x, y, z, item_position[t, 0], item_position[t, 1], item_position[t, 2],
+                       own + partner[t])
+    return count
+
+
+@njit(cache=True)
+def _dense_pairs(item_reach, low, high, table_start, bucket, item, item_cell, item_position,
+                 out_a, out_b):
+    """Write the unsorted pairs of a grid of one dense class; return their count.
+
+    Returns -1 when ``out_a`` / ``out_b`` may be too short (the caller
+    grows them and calls again): growing them here would make numba count
+    references to the buffers at every candidate, which doubled the cost.
+    Cells are wider than any search (CELL_MARGIN), so the items t > m of
+    the neighbour cells of item m's cell are exactly those of five rows of
+    cells along x: its own (from m on) and the next four in cell order (the
+    half of the 3 x 3 rows around it that comes later), each one range of
+    items. The exact test is ``_near``'s, so the set is ``_scan_class``'s.
+    """
+    n = item.size
+    capacity = out_a.size
+    count = 0
+    lx, ly, lz = low[0, 0], low[0, 1], low[0, 2]
+    nx, ny, nz = high[0, 0] - lx + 1, high[0, 1] - ly + 1, high[0, 2] - lz + 1
+    base = table_start[0]
+    for m in range(n):
+        x, y, z = item_position[m, 0], item_position[m, 1], item_position[m, 2]
+        own = item_reach[m]
+        query = item[m]
+        cx, cy, cz = item_cell[m, 0] - lx, item_cell[m, 1] - ly, item_cell[m, 2] - lz
+        first, last = max(cx - 1, 0), min(cx + 1, nx - 1)
+        for r in range(5):
+            # Rows (cy, cz), (cy + 1, cz), then (cy - 1 .. cy + 1, cz + 1).
+            ry, rz = (cy + r, cz) if r < 2 else (cy + r - 3, cz + 1)
+            if ry < 0 or ry >= ny or rz >= nz:
+                continue
+            row = base + (rz * ny + ry) * nx
+            t0 = m + 1 if r == 0 else bucket[row + first]
+            t1 = bucket[row + last + 1]
+            if count + (t1 - t0) > capacity:
+                return -1
+            count = _append_near(t0, t1, x, y, z, own, query, item, item_position, item_reach,
+                                 out_a, out_b, count)
+    return count
+
+
+@njit(cache=True)
+def _dense_grid_pairs(reach, low, high, table_start, bucket, item, item_cell, item_position):
+    """Return ``grid_pairs`` of a grid of one dense class (sorted by (i, j))."""
+    n = item.size
+    item_reach = np.empty(n)
+    for m in range(n):
+        item_reach[m] = reach[item[m]]
+    size = 4 * n + 64
+    while True:
+        out_a, out_b = np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64)
+        count = _dense_pairs(item_reach, low, high, table_start, bucket, item, item_cell,
+                             item_position, out_a, out_b)
+        if count >= 0:
+            return sort_pairs(out_a, out_b, count, n)
+        size *= 4
+
+
 @njit(cache=True)
 def grid_pairs(reach, corner, cell, class_reach, class_start, low, high, dense, table_start,
                bucket, item, item_cell, item_position):
@@ -312,6 +403,11 @@ def grid_pairs(reach, corner, cell, class_reach, class_start, low, high, dense, 
     class.
     """
     n = item.size
+    if class_start.size == 2 and dense[0] and cell[0] >= CELL_REACHES * class_reach[0] * (
+            1.0 + CELL_MARGIN) and np.max(high[0] - low[0]) < DENSE_AXIS_CELLS:
+        # One dense class (a gas): the neighbour-cell scan, no search boxes.
+        return _dense_grid_pairs(reach, low, high, table_start, bucket, item, item_cell,
+                                 item_position)
     item_reach = np.empty(n)
     for m in range(n):
         item_reach[m] = reach[item[m]]
@@ -395,8 +491,13 @@ def movers(position, built, extra, half_skin):
 
 
 @njit(cache=True)
-def merge_keys(keys, a, b, n):
-    """Return sorted ``keys`` (i * n + j) joined with pairs (a, b): ordered, i != j, no repeats."""
+def merge_pairs(keys, list_i, list_j, a, b, n):
+    """Return the listed pairs joined with pairs (a, b): sorted by (i, j), i != j, no repeats.
+
+    ``keys`` are the sorted i * n + j of the listed pairs (``list_i``,
+    ``list_j``). The listed pairs are copied, not split from their keys:
+    two integer divisions per pair cost more than the whole merge.
+    """
     add = np.empty(a.size, dtype=np.int64)
     count = 0
     for p in range(a.size):
@@ -404,19 +505,25 @@ def merge_keys(keys, a, b, n):
             add[count] = min(a[p], b[p]) * n + max(a[p], b[p])
             count += 1
     add = np.sort(add[:count])
-    out = np.empty(keys.size + count, dtype=np.int64)
+    out_i = np.empty(keys.size + count, dtype=np.int64)
+    out_j = np.empty(keys.size + count, dtype=np.int64)
     s = t = m = 0
+    last = -1
     while s < keys.size or t < count:
         if t == count or (s < keys.size and keys[s] <= add[t]):
             value = keys[s]
+            if value != last:
+                out_i[m], out_j[m] = list_i[s], list_j[s]
+                m += 1
             s += 1
         else:
             value = add[t]
+            if value != last:
+                out_i[m], out_j[m] = value // n, value % n
+                m += 1
             t += 1
-        if m == 0 or out[m - 1] != value:
-            out[m] = value
-            m += 1
-    return out[:m]
+        last = value
+    return out_i[:m], out_j[:m]
 
 
 def as_points(position: np.ndarray) -> np.ndarray:
@@ -448,10 +555,10 @@ def warm_up() -> None:
     query = np.array([0], dtype=np.int64)
     a, b = grid_query(position, query, reach[query], *partner_terms(reach, grid), *grid)
     keys = np.array([1], dtype=np.int64)
-    merge_keys(keys, a, b, 3)
+    merge_pairs(keys, keys // 3, keys % 3, a, b, 3)
     movers(position, position, np.zeros(3), 0.5)
 
 
 def kernels() -> list:
     """Return the compiled kernels of this module (for the cache check)."""
-    return [build_grid, grid_pairs, grid_query, movers, merge_keys, sort_pairs]
+    return [build_grid, grid_pairs, grid_query, movers, merge_pairs, sort_pairs]

@@ -194,9 +194,8 @@ class BroadphaseStage(Stage):
                 return candidate_pairs(position, radius + extra)
         if movers.size == 0:
             return self._search.i, self._search.j
-        keys = self._with_mover_pairs(position, radius, movers, extra)
         self.mover_updates += 1
-        return keys // n, keys % n
+        return self._with_mover_pairs(position, radius, movers, extra)
 
     def _movers(self, position: np.ndarray, extra: np.ndarray) -> np.ndarray:
         """Return the particles whose displacement plus allowance exceeds skin/2."""
@@ -234,8 +233,9 @@ class BroadphaseStage(Stage):
         self.searches += 1
 
     def _with_mover_pairs(self, position: np.ndarray, radius: np.ndarray,
-                          movers: np.ndarray, extra: np.ndarray) -> np.ndarray:
-        """Return the listed pair keys plus every pair a mover may now overlap."""
+                          movers: np.ndarray, extra: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray]:
+        """Return the listed pairs plus every pair a mover may now overlap (i < j, sorted)."""
         n = position.shape[0]
         mover_reach = radius[movers] + extra[movers] + self._half_skin
         # A mover against a particle that moved <= skin/2: that particle's
@@ -251,8 +251,9 @@ class BroadphaseStage(Stage):
         else:
             between = search_pairs(position[movers], radius[movers] + extra[movers])
             between_i, between_j = between.i, between.j
-        return grid_kernels.merge_keys(self._keys, np.concatenate([near_i, movers[between_i]]),
-                                       np.concatenate([near_j, movers[between_j]]), n)
+        return grid_kernels.merge_pairs(self._keys, self._search.i, self._search.j,
+                                        np.concatenate([near_i, movers[between_i]]),
+                                        np.concatenate([near_j, movers[between_j]]), n)
 
     def describe(self) -> str:
         """Say what the stage does."""
