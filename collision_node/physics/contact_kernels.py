@@ -324,7 +324,8 @@ def _friction_vector(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse,
 def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_inward,
                       w_rest, w_mu, w_impact, struck, use_threshold, threshold, tolerance,
                       strike, friction, planar, w_hit, w_normal, w_tangential, loss, totals,
-                      spin, accumulate, w_acc, w_acc_impact, w_acc_t, warm_dv, warmed):
+                      spin, accumulate, w_acc, w_acc_impact, w_acc_t, warm_dv, warmed,
+                      track, clock, changed, w_seen, counts):
     """Solve one wall plane's contacts (distinct particles); return whether any changed.
 
     ``spin``: each particle's ``spin_factor`` (used with friction only).
@@ -333,10 +334,17 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
     plane (see ``solve_contacts``); impact impulses go to ``w_acc_impact``,
     and a bounce never reflects the closing speed that warm pushes added
     (``warm_dv``, the velocity change of each ``warmed`` particle).
+    With ``track`` a contact whose particle has not changed since the
+    contact's last visit did nothing is skipped (``_unchanged``).
     """
     any_hit = False
     for c in range(start, stop):
         p, axis, inward = w_index[c], w_axis[c], w_inward[c]
+        if track:
+            if changed[p] <= w_seen[c]:
+                counts[1] += 1
+                continue
+            counts[0] += 1
         e = w_rest[c]
         if use_threshold:
             u = inward * v[p, axis]
@@ -376,7 +384,13 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
             removed = -(magnitude * 0.5 * (-approach + (-approach + change)))
             w_acc[c] += magnitude
         else:
+            if track:
+                w_seen[c] = clock[0]
             continue
+        if track:
+            clock[0] += 1
+            changed[p] = clock[0]
+            w_seen[c] = -1
         any_hit = True
         _book(loss, WALLS, p, removed)
         totals[WALLS] += removed
@@ -402,7 +416,8 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
 def _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w_rest, w_mu,
                  w_impact, struck, use_threshold, threshold, tolerance, strike, friction,
                  planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, first,
-                 spin, accumulate, w_acc, w_acc_impact, w_acc_t, warm_dv, warmed):
+                 spin, accumulate, w_acc, w_acc_impact, w_acc_t, warm_dv, warmed, track,
+                 clock, changed, w_seen, counts):
     """Solve every wall plane once, plane after plane; return whether any changed.
 
     On the ``first`` visit each plane's contacts keep the approach speed they
@@ -418,7 +433,8 @@ def _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w
                              w_index, w_axis, w_inward, w_rest, w_mu, w_impact, struck,
                              use_threshold, threshold, tolerance, strike, friction, planar,
                              w_hit, w_normal, w_tangential, loss, totals, spin, accumulate,
-                             w_acc, w_acc_impact, w_acc_t, warm_dv, warmed):
+                             w_acc, w_acc_impact, w_acc_t, warm_dv, warmed, track, clock,
+                             changed, w_seen, counts):
             any_hit = True
     return any_hit
 
@@ -642,7 +658,7 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                    use_threshold, threshold, tolerance, strike, iterations, friction, planar,
                    shock_order, i_lower, shock_passes,
                    hit, summed_normal, summed_tangential, w_hit, w_normal, w_tangential,
-                   w_approach, loss, totals, accumulate, acc, acc_t, w_acc, w_acc_t):
+                   w_approach, loss, totals, accumulate, acc, acc_t, w_acc, w_acc_t, counts):
     """Run one contact solve in place; return the sweeps run. See ``SequentialImpulseStage``.
 
     Sweeps visit the pairs in ``order``, then each wall plane, until no
@@ -671,6 +687,13 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
     pushing an opening contact after the sweeps is taken back
     (``_take_back_pairs``, and ``_take_back_pass`` beside the shock passes).
     A warm impulse is not counted in ``hit`` (no collision).
+
+    A sweep skips a contact whose last visit did nothing and neither of whose
+    particles' velocities changed since (each change stamps its particles
+    with a running clock): that visit would read the same velocities and
+    accumulated impulse and do nothing again, so skipping it changes no bit
+    of the result, only the cost of a pile where few contacts still move.
+    ``counts`` (int64, 2) gets the contact visits made and skipped added.
     """
     n = v.shape[0]
     m = pi.size
@@ -721,12 +744,24 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                 warm_dv[p, d] = v[p, d] - warm_dv[p, d]
                 if warm_dv[p, d] != 0.0:
                     warmed[p] = True
+    # Change tracking (see above): clock[0] counts visits that changed
+    # velocities; changed[p] is the clock at p's last change, seen[k] the
+    # clock at contact k's last visit that did nothing (-1: none since it
+    # last acted). A contact is skipped when changed <= seen for both ends.
+    clock = np.zeros(1, dtype=np.int64)
+    changed = np.zeros(n, dtype=np.int64)
+    seen = np.full(m, -1, dtype=np.int64)
+    w_seen = np.full(w_index.size, -1, dtype=np.int64)
     sweeps = 0
     for _ in range(iterations):
         sweeps += 1
         applied = False
         for k in order:
             a, b = pi[k], pj[k]
+            if changed[a] <= seen[k] and changed[b] <= seen[k]:
+                counts[1] += 1
+                continue
+            counts[0] += 1
             nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
             # The closing speed is read once: it decides both whether the pair
             # gets an impulse and, against the threshold, its e.
@@ -773,7 +808,11 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                 removed = _push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
                 acc[k] += magnitude
             else:
+                seen[k] = clock[0]
                 continue
+            clock[0] += 1
+            changed[a] = changed[b] = clock[0]
+            seen[k] = -1
             applied = True
             _book_pair(loss, RESTITUTION, a, b, removed, share[k])
             totals[RESTITUTION] += removed
@@ -795,7 +834,8 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                             w_rest, w_mu, w_impact, struck, use_threshold, threshold,
                             tolerance, strike, friction, planar, w_hit, w_normal,
                             w_tangential, loss, totals, w_approach, first_wall_visit, spin,
-                            accumulate, w_acc, w_acc_impact, w_acc_t, warm_dv, warmed):
+                            accumulate, w_acc, w_acc_impact, w_acc_t, warm_dv, warmed,
+                            True, clock, changed, w_seen, counts):
                 applied = True
             first_wall_visit = False
         if not applied or single:
@@ -807,7 +847,8 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
         _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w_rest,
                      w_mu, w_impact, struck, use_threshold, threshold, 0.0, strike, friction,
                      planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, False,
-                     spin, accumulate, w_acc, w_acc_impact, w_acc_t, warm_dv, warmed)
+                     spin, accumulate, w_acc, w_acc_impact, w_acc_t, warm_dv, warmed, False,
+                     clock, changed, w_seen, counts)
         for _ in range(shock_passes):
             taken = False
             if accumulate:
@@ -819,7 +860,7 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                          w_rest, w_mu, w_impact, struck, use_threshold, threshold, 0.0,
                          strike, friction, planar, w_hit, w_normal, w_tangential, loss,
                          totals, w_approach, False, spin, accumulate, w_acc, w_acc_impact,
-                         w_acc_t, warm_dv, warmed)
+                         w_acc_t, warm_dv, warmed, False, clock, changed, w_seen, counts)
             if not pushed and not taken:
                 break
     return sweeps
@@ -1078,7 +1119,8 @@ def warm_up() -> None:
                    True, True, np.zeros(1, dtype=np.int64), np.zeros(1, dtype=bool), 2,
                    np.zeros(1, dtype=bool), np.zeros(1), np.zeros(1), np.zeros(1, dtype=bool),
                    np.zeros(1), np.zeros(1), np.zeros(1), np.zeros((4, 2)), np.zeros(3),
-                   True, np.ones(1), np.ones((1, 3)), np.ones(1), np.ones((1, 3)))
+                   True, np.ones(1), np.ones((1, 3)), np.ones(1), np.ones((1, 3)),
+                   np.zeros(2, dtype=np.int64))
     greedy_colors(pi, pj, dynamic, 32)
     # Narrowphase and separation (a pair 1.9 m apart with radii 1 m overlaps).
     position = np.array([[0.0, 0.0, 0.0], [1.9, 0.0, 0.0]])

@@ -290,6 +290,9 @@ class SequentialImpulseStage(Stage):
         self.cache = ContactCache()
         # Sweeps run, summed over the solves, and in the last solve (kernel).
         self.sweeps = self.solves = self.last_sweeps = 0
+        # Contact visits the kernel made and skipped (unchanged since a visit
+        # that did nothing), summed over the solves.
+        self.visits = np.zeros(2, dtype=np.int64)
 
     def run(self, ctx: StepContext) -> None:
         """Apply the law's impulses in place, count the contacts hit, book and record them."""
@@ -466,7 +469,8 @@ class SequentialImpulseStage(Stage):
             threshold > 0.0, float(threshold), float(tolerance), STRIKE_FACTOR,
             int(self.iterations), friction, planar, shock_order, i_lower,
             SHOCK_PASSES, hit, summed_normal, summed_tangential, w_hit, w_normal,
-            w_tangential, w_approach, loss, totals, accumulate, acc, acc_t, w_acc, w_acc_t)
+            w_tangential, w_approach, loss, totals, accumulate, acc, acc_t, w_acc, w_acc_t,
+            self.visits)
         self.sweeps += int(sweeps)
         self.solves += 1
         self.last_sweeps = int(sweeps)
