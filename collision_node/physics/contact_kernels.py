@@ -441,15 +441,21 @@ def _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w
 
 @njit(cache=True)
 def _shock_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order, threshold,
-                pushed, loss, totals):
+                pushed, loss, totals, clock, changed, seen, counts):
     """One shock-propagation pass in ``shock_order`` (ground up); return whether it pushed.
 
     The law of ``SequentialImpulseStage._shock_pass``: the upper particle's
     approach along the line of action is stopped against the lower one
-    (never lifted), the work of the impulse booked as 'restitution'.
+    (never lifted), the work of the impulse booked as 'restitution'. A pair
+    whose particles did not change since its last visit here did nothing
+    is skipped (``seen``, as in the sweeps of ``solve_contacts``).
     """
     any_push = False
     for k in shock_order:
+        if changed[pi[k]] <= seen[k] and changed[pj[k]] <= seen[k]:
+            counts[1] += 1
+            continue
+        counts[0] += 1
         if i_lower[k]:
             low, up = pi[k], pj[k]
             nx, ny, nz = -normal[k, 0], -normal[k, 1], -normal[k, 2]
@@ -460,7 +466,11 @@ def _shock_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order, thre
         u_lower = _dot(v[low, 0], v[low, 1], v[low, 2], nx, ny, nz)
         target = min(u_lower, 0.0)
         if not (u_upper < target - 0.0 and u_lower - u_upper < threshold and dynamic[up]):
+            seen[k] = clock[0]
             continue
+        clock[0] += 1
+        changed[up] = clock[0]
+        seen[k] = -1
         w = inv_mass[up]
         magnitude = (target - u_upper) / w
         px, py, pz = magnitude * nx, magnitude * ny, magnitude * nz
@@ -503,7 +513,7 @@ def _take_back_pairs(v, inv_mass, pi, pj, normal, order, acc, share, summed_norm
 
 @njit(cache=True)
 def _take_back_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order, acc, pushed,
-                    loss, totals):
+                    loss, totals, clock, changed, seen, counts):
     """Take back resting impulse the sweeps left pushing contacts open; return whether any.
 
     The counterpart of ``_shock_pass`` for accumulated impulses: warm pushes
@@ -513,12 +523,16 @@ def _take_back_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order, 
     slowed along the line of action to the lower one's speed (never below
     0: it is not pulled down), taking back at most that impulse. Only the
     upper particle's kinetic energy changes and it only falls; the work is
-    booked as 'restitution'.
+    booked as 'restitution'. Skips as ``_shock_pass`` (its own ``seen``).
     """
     any_taken = False
     for k in shock_order:
         if not acc[k] > 0.0:
             continue
+        if changed[pi[k]] <= seen[k] and changed[pj[k]] <= seen[k]:
+            counts[1] += 1
+            continue
+        counts[0] += 1
         if i_lower[k]:
             low, up = pi[k], pj[k]
             nx, ny, nz = -normal[k, 0], -normal[k, 1], -normal[k, 2]
@@ -531,7 +545,11 @@ def _take_back_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order, 
         u_lower = _dot(v[low, 0], v[low, 1], v[low, 2], nx, ny, nz)
         target = max(u_lower, 0.0)
         if not u_upper > target:
+            seen[k] = clock[0]
             continue
+        clock[0] += 1
+        changed[up] = clock[0]
+        seen[k] = -1
         w = inv_mass[up]
         magnitude = max((target - u_upper) / w, -acc[k])
         px, py, pz = magnitude * nx, magnitude * ny, magnitude * nz
@@ -844,23 +862,30 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
         _take_back_pairs(v, inv_mass, pi, pj, normal, order, acc, share, summed_normal, loss,
                          totals)
     if shock_order.size:
+        # The passes run at tolerance 0, so each keeps its own record of
+        # contacts that did nothing (the sweeps' ``seen`` was at the tolerance).
+        w_seen = np.full(w_index.size, -1, dtype=np.int64)
+        shock_seen = np.full(m, -1, dtype=np.int64)
+        taken_seen = np.full(m, -1, dtype=np.int64)
         _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w_rest,
                      w_mu, w_impact, struck, use_threshold, threshold, 0.0, strike, friction,
                      planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, False,
-                     spin, accumulate, w_acc, w_acc_impact, w_acc_t, warm_dv, warmed, False,
+                     spin, accumulate, w_acc, w_acc_impact, w_acc_t, warm_dv, warmed, True,
                      clock, changed, w_seen, counts)
         for _ in range(shock_passes):
             taken = False
             if accumulate:
                 taken = _take_back_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower,
-                                        shock_order, acc, summed_normal, loss, totals)
+                                        shock_order, acc, summed_normal, loss, totals, clock,
+                                        changed, taken_seen, counts)
             pushed = _shock_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order,
-                                 threshold, summed_normal, loss, totals)
+                                 threshold, summed_normal, loss, totals, clock, changed,
+                                 shock_seen, counts)
             _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward,
                          w_rest, w_mu, w_impact, struck, use_threshold, threshold, 0.0,
                          strike, friction, planar, w_hit, w_normal, w_tangential, loss,
                          totals, w_approach, False, spin, accumulate, w_acc, w_acc_impact,
-                         w_acc_t, warm_dv, warmed, False, clock, changed, w_seen, counts)
+                         w_acc_t, warm_dv, warmed, True, clock, changed, w_seen, counts)
             if not pushed and not taken:
                 break
     return sweeps
