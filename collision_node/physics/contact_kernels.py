@@ -106,51 +106,9 @@ def _friction_spun(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, m
     A solve computes them once per particle instead of at every visit: the
     divisions are most of a contact visit's arithmetic.
     """
-    w_a = inv_mass[a]
-    sx, sy, sz = radius[a] * ang[a, 0], radius[a] * ang[a, 1], radius[a] * ang[a, 2]
-    ux, uy, uz = v[a, 0], v[a, 1], v[a, 2]
-    w_sum = w_a
-    if b >= 0:
-        w_b = inv_mass[b]
-        w_sum = w_a + w_b
-        sx += radius[b] * ang[b, 0]
-        sy += radius[b] * ang[b, 1]
-        sz += radius[b] * ang[b, 2]
-        ux -= v[b, 0]
-        uy -= v[b, 1]
-        uz -= v[b, 2]
-    ux -= sy * nz - sz * ny
-    uy -= sz * nx - sx * nz
-    uz -= sx * ny - sy * nx
-    un = _dot(ux, uy, uz, nx, ny, nz)
-    tx, ty, tz = ux - un * nx, uy - un * ny, uz - un * nz
-    if planar:
-        tz = 0.0
-    slip = math.sqrt(_dot(tx, ty, tz, tx, ty, tz))
-    k = STICK_FACTOR * w_sum
-    stick = slip / k if (slip > 0.0 and k > 0.0) else 0.0
-    magnitude = min(stick, mu * normal_impulse)
-    if slip > 0.0:
-        jx, jy, jz = -magnitude * (tx / slip), -magnitude * (ty / slip), -magnitude * (tz / slip)
-    else:
-        jx = jy = jz = -magnitude * 0.0
-    removed = magnitude * slip - 0.5 * k * (magnitude * magnitude)
-    # I^-1 (r x J), r = -radius N: the same sign of spin change on both sides.
-    cx, cy, cz = ny * jz - nz * jy, nz * jx - nx * jz, nx * jy - ny * jx
-    v[a, 0] += w_a * jx
-    v[a, 1] += w_a * jy
-    v[a, 2] += w_a * jz
-    ang[a, 0] += f_a * cx
-    ang[a, 1] += f_a * cy
-    ang[a, 2] += f_a * cz
-    if b >= 0:
-        v[b, 0] += -w_b * jx
-        v[b, 1] += -w_b * jy
-        v[b, 2] += -w_b * jz
-        ang[b, 0] += f_b * cx
-        ang[b, 1] += f_b * cy
-        ang[b, 2] += f_b * cz
-    return math.sqrt(_dot(jx, jy, jz, jx, jy, jz)), removed
+    magnitude, removed, _jx, _jy, _jz = _friction_vector(
+        v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu, planar, f_a, f_b, True)
+    return magnitude, removed
 
 
 @njit(cache=True)
