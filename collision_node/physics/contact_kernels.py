@@ -175,27 +175,7 @@ def _friction_acc(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_total, mu, 
             True)
         acc_t[row, 0], acc_t[row, 1], acc_t[row, 2] = jx, jy, jz
         return magnitude, removed
-    w_a = inv_mass[a]
-    sx, sy, sz = radius[a] * ang[a, 0], radius[a] * ang[a, 1], radius[a] * ang[a, 2]
-    ux, uy, uz = v[a, 0], v[a, 1], v[a, 2]
-    w_sum = w_a
-    w_b = 0.0
-    if b >= 0:
-        w_b = inv_mass[b]
-        w_sum = w_a + w_b
-        sx += radius[b] * ang[b, 0]
-        sy += radius[b] * ang[b, 1]
-        sz += radius[b] * ang[b, 2]
-        ux -= v[b, 0]
-        uy -= v[b, 1]
-        uz -= v[b, 2]
-    ux -= sy * nz - sz * ny
-    uy -= sz * nx - sx * nz
-    uz -= sx * ny - sy * nx
-    un = _dot(ux, uy, uz, nx, ny, nz)
-    tx, ty, tz = ux - un * nx, uy - un * ny, uz - un * nz
-    if planar:
-        tz = 0.0
+    tx, ty, tz, w_sum = _slip(v, ang, inv_mass, radius, a, b, nx, ny, nz, planar)
     k = STICK_FACTOR * w_sum
     if not k > 0.0:
         return 0.0, 0.0
@@ -217,6 +197,35 @@ def _friction_acc(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_total, mu, 
     removed = -(_dot(jx, jy, jz, tx, ty, tz) + 0.5 * k * _dot(jx, jy, jz, jx, jy, jz))
     _apply_tangential(v, ang, inv_mass, a, b, nx, ny, nz, jx, jy, jz, f_a, f_b)
     return math.sqrt(_dot(jx, jy, jz, jx, jy, jz)), removed
+
+
+@njit(cache=True)
+def _slip(v, ang, inv_mass, radius, a, b, nx, ny, nz, planar):
+    """Return the slip velocity of the contact points (tangent to N) and w_a + w_b.
+
+    ``b`` < 0 is a static wall. The one place the friction kernels take the
+    contact points' relative velocity (spin included) from.
+    """
+    w_a = inv_mass[a]
+    sx, sy, sz = radius[a] * ang[a, 0], radius[a] * ang[a, 1], radius[a] * ang[a, 2]
+    ux, uy, uz = v[a, 0], v[a, 1], v[a, 2]
+    w_sum = w_a
+    if b >= 0:
+        w_sum = w_a + inv_mass[b]
+        sx += radius[b] * ang[b, 0]
+        sy += radius[b] * ang[b, 1]
+        sz += radius[b] * ang[b, 2]
+        ux -= v[b, 0]
+        uy -= v[b, 1]
+        uz -= v[b, 2]
+    ux -= sy * nz - sz * ny
+    uy -= sz * nx - sx * nz
+    uz -= sx * ny - sy * nx
+    un = _dot(ux, uy, uz, nx, ny, nz)
+    tx, ty, tz = ux - un * nx, uy - un * ny, uz - un * nz
+    if planar:
+        tz = 0.0
+    return tx, ty, tz, w_sum
 
 
 @njit(cache=True)
@@ -244,26 +253,7 @@ def _apply_tangential(v, ang, inv_mass, a, b, nx, ny, nz, jx, jy, jz, f_a, f_b):
 def _friction_vector(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu, planar,
                      f_a, f_b, apply):
     """``_friction_spun``'s law, also returning the impulse vector (same operations)."""
-    w_a = inv_mass[a]
-    sx, sy, sz = radius[a] * ang[a, 0], radius[a] * ang[a, 1], radius[a] * ang[a, 2]
-    ux, uy, uz = v[a, 0], v[a, 1], v[a, 2]
-    w_sum = w_a
-    if b >= 0:
-        w_b = inv_mass[b]
-        w_sum = w_a + w_b
-        sx += radius[b] * ang[b, 0]
-        sy += radius[b] * ang[b, 1]
-        sz += radius[b] * ang[b, 2]
-        ux -= v[b, 0]
-        uy -= v[b, 1]
-        uz -= v[b, 2]
-    ux -= sy * nz - sz * ny
-    uy -= sz * nx - sx * nz
-    uz -= sx * ny - sy * nx
-    un = _dot(ux, uy, uz, nx, ny, nz)
-    tx, ty, tz = ux - un * nx, uy - un * ny, uz - un * nz
-    if planar:
-        tz = 0.0
+    tx, ty, tz, w_sum = _slip(v, ang, inv_mass, radius, a, b, nx, ny, nz, planar)
     slip = math.sqrt(_dot(tx, ty, tz, tx, ty, tz))
     k = STICK_FACTOR * w_sum
     stick = slip / k if (slip > 0.0 and k > 0.0) else 0.0
@@ -511,25 +501,7 @@ def _warm_tangential(v, ang, inv_mass, radius, a, b, nx, ny, nz, bound, planar, 
     acc_t[row, 0], acc_t[row, 1], acc_t[row, 2] = qx, qy, qz
     if qx == 0.0 and qy == 0.0 and qz == 0.0:
         return 0.0
-    w_a = inv_mass[a]
-    sx, sy, sz = radius[a] * ang[a, 0], radius[a] * ang[a, 1], radius[a] * ang[a, 2]
-    ux, uy, uz = v[a, 0], v[a, 1], v[a, 2]
-    w_sum = w_a
-    if b >= 0:
-        w_sum = w_a + inv_mass[b]
-        sx += radius[b] * ang[b, 0]
-        sy += radius[b] * ang[b, 1]
-        sz += radius[b] * ang[b, 2]
-        ux -= v[b, 0]
-        uy -= v[b, 1]
-        uz -= v[b, 2]
-    ux -= sy * nz - sz * ny
-    uy -= sz * nx - sx * nz
-    uz -= sx * ny - sy * nx
-    un = _dot(ux, uy, uz, nx, ny, nz)
-    tx, ty, tz = ux - un * nx, uy - un * ny, uz - un * nz
-    if planar:
-        tz = 0.0
+    tx, ty, tz, w_sum = _slip(v, ang, inv_mass, radius, a, b, nx, ny, nz, planar)
     k = STICK_FACTOR * w_sum
     removed = -(_dot(qx, qy, qz, tx, ty, tz) + 0.5 * k * _dot(qx, qy, qz, qx, qy, qz))
     _apply_tangential(v, ang, inv_mass, a, b, nx, ny, nz, qx, qy, qz, f_a, f_b)

@@ -418,6 +418,23 @@ def workspace(n: int, m: int, dimensions: int, old=None) -> tuple:
             np.empty(sizes[1] + sizes[1] // 4), np.empty(sizes[2] + sizes[2] // 4, dtype=bool))
 
 
+@njit(cache=True)
+def _keep_due(items, count, times, dt, listed):
+    """Keep in ``items[:count]`` (in order) those whose time is within the step; return how many.
+
+    An entry dropped is marked as no longer listed, so it can be listed again.
+    """
+    kept = 0
+    for q in range(count):
+        k = items[q]
+        if times[k] <= dt:
+            items[kept] = k
+            kept += 1
+        else:
+            listed[k] = False
+    return kept
+
+
 @njit(cache=True, error_model='numpy')
 def sweep(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, has_own_mu,
           restitution, wall_restitution, friction, mu, has_walls, low, high, dimensions,
@@ -530,24 +547,8 @@ def sweep(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, 
             is_changed[changed[c]] = False
         n_changed = 0
         # Drop what is no longer due.
-        kept = 0
-        for q in range(n_pending):
-            k = pending[q]
-            if pair_t[k] <= dt:
-                pending[kept] = k
-                kept += 1
-            else:
-                listed[k] = False
-        n_pending = kept
-        kept = 0
-        for q in range(n_wall_due):
-            p = wall_due[q]
-            if first_wall[p] <= dt:
-                wall_due[kept] = p
-                kept += 1
-            else:
-                wall_listed[p] = False
-        n_wall_due = kept
+        n_pending = _keep_due(pending, n_pending, pair_t, dt, listed)
+        n_wall_due = _keep_due(wall_due, n_wall_due, first_wall, dt, wall_listed)
         if n_pending == 0 and n_wall_due == 0:
             rounds_run -= 1
             break
