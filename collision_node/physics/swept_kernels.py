@@ -403,21 +403,9 @@ def _predict_all_walls(x, v, radius, local_time, dynamic, low, high, dimensions,
     return n_wall_due
 
 
-def _round_sizes(n: int, m: int, dimensions: int) -> tuple[int, int, int]:
-    """Return the (int, float, bool) scratch sizes of ``_rounds``."""
-    return 4 * m + 9 * n + 1, 2 * n * dimensions + 3 * n + m, 4 * n + m
-
-
 def workspace_sizes(n: int, m: int, dimensions: int) -> tuple[int, int, int]:
-    """Return the (int, float, bool) scratch sizes ``sweep`` needs for n particles, m pairs.
-
-    ``_rounds``' scratch, then the particles' copy in memory order: the
-    inverse order and the pairs (ints), position, velocity, spin, inverse
-    mass, radius and own coefficients (floats), dynamic and resting wall
-    flags (bools).
-    """
-    ints, floats, flags = _round_sizes(n, m, dimensions)
-    return ints + 2 * n + 1 + 5 * m, floats + 13 * n, flags + n + 2 * dimensions * n + m
+    """Return the (int, float, bool) scratch sizes ``sweep`` needs for n particles, m pairs."""
+    return 4 * m + 9 * n + 1, 2 * n * dimensions + 3 * n + m, 4 * n + m
 
 
 def workspace(n: int, m: int, dimensions: int, old=None) -> tuple:
@@ -448,19 +436,22 @@ def _keep_due(items, count, times, dt, listed):
 
 
 @njit(cache=True, error_model='numpy')
-def _rounds(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, has_own_mu,
-            restitution, wall_restitution, friction, mu, has_walls, low, high, dimensions,
-            gravity, has_gravity, resting_pair, resting_wall, has_resting, min_speed,
-            strike_speed, dt, rounds, planar, record, loss, totals, counts, workspace, world,
-            pair_world):
-    """Run the rounds and the drift on particles and pairs stored in ``sweep``'s memory order.
+def sweep(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, has_own_mu,
+          restitution, wall_restitution, friction, mu, has_walls, low, high, dimensions,
+          gravity, has_gravity, resting_pair, resting_wall, has_resting, min_speed,
+          strike_speed, dt, rounds, planar, record, loss, totals, counts, workspace):
+    """Run one step of the swept stage in place; see ``SweptContactStage`` for the rules.
 
-    Particle p here is the caller's particle ``world[p]``, pair k the
-    caller's pair ``pair_world[k]``: losses and records are written with
-    world indices, and whatever depends on an order (ties between pairs,
-    the order pairs are resolved in, a record's (i, j) order and its
-    normal's sign, the order of wall impacts and so of the sums they add
-    to) follows the world indices, so the layout changes no result.
+    ``workspace``: (int64, float64, bool) buffers of at least
+    ``workspace_sizes(n, m, dimensions)`` elements.
+
+    ``a``, ``b``: the candidate pairs (at least one particle dynamic).
+    Fills ``loss`` (rows as ``EFFECTS``, per particle), ``totals`` (per
+    effect) and ``counts`` (pair impacts, wall impacts, rounds run, pairs
+    resolved), and
+    returns the impact records when ``record`` (floats: time, point,
+    normal, normal and tangential impulse, approach; ints: i, j with
+    j = -1 at a wall), in the order the numpy stage records them.
     """
     n = x.shape[0]
     m = a.size
@@ -567,7 +558,7 @@ def _rounds(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu
             t = pair_t[k]
             for p in (a[k], b[k]):
                 if best_round[p] != round_ or t < best_t[p] or \
-                        (t == best_t[p] and pair_world[k] < pair_world[best_k[p]]):
+                        (t == best_t[p] and k < best_k[p]):
                     best_round[p] = round_
                     best_t[p] = t
                     best_k[p] = k
@@ -589,8 +580,7 @@ def _rounds(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu
                 hits[n_hits] = p
                 n_hits += 1
         counts[3] += n_chosen
-        # In the caller's pair order, as the numpy rounds resolve them.
-        order = chosen[:n_chosen][np.argsort(pair_world[chosen[:n_chosen]])]
+        order = np.sort(chosen[:n_chosen])
         for k in order:
             i, j = a[k], b[k]
             t = pair_t[k]
@@ -618,17 +608,16 @@ def _rounds(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu
             if not approach > 0.0:
                 continue
             share = inv_mass[i] / (inv_mass[i] + inv_mass[j])
-            world_i, world_j = world[i], world[j]
-            loss[RESTITUTION, world_i] += removed * share
-            loss[RESTITUTION, world_j] += removed * (1.0 - share)
+            loss[RESTITUTION, i] += removed * share
+            loss[RESTITUTION, j] += removed * (1.0 - share)
             totals[RESTITUTION] += removed
             tangential = 0.0
             if friction:
                 pair_mu = _coefficient(own_mu, has_own_mu, i, j, mu)
                 tangential, lost = _friction(v, ang, inv_mass, radius, i, j, nx, ny, nz,
                                              magnitude, pair_mu, planar)
-                loss[FRICTION, world_i] += lost * share
-                loss[FRICTION, world_j] += lost * (1.0 - share)
+                loss[FRICTION, i] += lost * share
+                loss[FRICTION, j] += lost * (1.0 - share)
                 totals[FRICTION] += lost
             counts[0] += 1
             if e > 0.0 and approach >= strike_speed:
@@ -636,7 +625,7 @@ def _rounds(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu
             touched[i] = touched[j] = True
             if record:
                 records, index = _grow(records, index, count)
-                first, second, sign = (i, j, 1.0) if world_i <= world_j else (j, i, -1.0)
+                first, second, sign = (i, j, 1.0) if i <= j else (j, i, -1.0)
                 row = records[count]
                 row[0] = t
                 for d, n_d in enumerate((nx, ny, nz)):
@@ -645,7 +634,7 @@ def _rounds(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu
                     row[1 + d] = 0.5 * ((x[first, d] - radius[first] * normal)
                                         + (x[second, d] + radius[second] * normal))
                 row[7], row[8], row[9] = magnitude, tangential, approach
-                index[count, 0], index[count, 1] = world[first], world[second]
+                index[count, 0], index[count, 1] = first, second
                 count += 1
         # Walls: every particle to its first wall time, then plane after plane.
         for q in range(n_hits):
@@ -656,8 +645,7 @@ def _rounds(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu
                 changed[n_changed] = p
                 n_changed += 1
         if n_hits:
-            # In world order: the wall sums and records add up as the numpy stage's.
-            hit_order = hits[:n_hits][np.argsort(world[hits[:n_hits]])]
+            hit_order = np.sort(hits[:n_hits])
             for axis in range(dimensions):
                 for column, plane, inward in ((2 * axis, low[axis], 1.0),
                                               (2 * axis + 1, high[axis], -1.0)):
@@ -676,7 +664,7 @@ def _rounds(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu
                         magnitude = change / inv_mass[p]
                         removed = 0.5 * magnitude * approach * (1.0 - e) \
                             if approach > 0.0 else 0.0
-                        loss[WALLS, world[p]] += removed
+                        loss[WALLS, p] += removed
                         totals[WALLS] += removed
                         if e > 0.0 and approach >= strike_speed:
                             struck[p] = True
@@ -690,7 +678,7 @@ def _rounds(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu
                             tangential, lost = _friction(v, ang, inv_mass, radius, p, -1,
                                                          nx, ny, nz, magnitude, wall_mu,
                                                          planar)
-                            loss[FRICTION, world[p]] += lost
+                            loss[FRICTION, p] += lost
                             totals[FRICTION] += lost
                         counts[1] += 1
                         if record:
@@ -701,187 +689,13 @@ def _rounds(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu
                             row[1 + axis] = plane
                             row[4], row[5], row[6] = nx, ny, nz
                             row[7], row[8], row[9] = magnitude, tangential, approach
-                            index[count, 0], index[count, 1] = world[p], -1
+                            index[count, 0], index[count, 1] = p, -1
                             count += 1
     for p in range(n):
         if dynamic[p]:
             _advance(x, v, local_time, p, dt, gravity, has_gravity)
     counts[2] += rounds_run
     return records[:count], index[:count]
-
-
-@njit(cache=True)
-def cell_order(x, dimensions, out):
-    """Write to ``out`` the particles in the order of their grid cells; return it.
-
-    Cells of about one particle each over the particles' bounding box,
-    taken row by row (x fastest, then y, then z; a counting sort, so in
-    each cell by index): particles close in space end up close in memory,
-    which is what ``sweep`` copies them in. Non-finite coordinates go to
-    the first cell (the order only has to be a permutation).
-    """
-    n = x.shape[0]
-    lo = np.full(3, np.inf)
-    hi = np.full(3, -np.inf)
-    for p in range(n):
-        for k in range(dimensions):
-            c = x[p, k]
-            if c < lo[k]:
-                lo[k] = c
-            if c > hi[k]:
-                hi[k] = c
-    volume = 1.0
-    spread = 0
-    for k in range(dimensions):
-        if hi[k] > lo[k] and np.isfinite(hi[k] - lo[k]):
-            volume *= hi[k] - lo[k]
-            spread += 1
-        else:
-            lo[k], hi[k] = 0.0, 0.0
-    size = (volume / max(n, 1)) ** (1.0 / max(spread, 1))
-    cells = np.ones(3, dtype=np.int64)
-    total = 1
-    for k in range(dimensions):
-        if hi[k] > lo[k] and size > 0.0:
-            # At most n cells along an axis: the key stays small for a counting sort.
-            cells[k] = min(int((hi[k] - lo[k]) / size) + 1, max(n, 1))
-        total *= cells[k]
-    if total > 4 * n + 16:
-        # A flat box (every particle on a plane or a line): one axis of cells.
-        cells[:] = 1
-        cells[0] = max(n, 1)
-        total = cells[0]
-        for k in range(1, dimensions):
-            lo[k], hi[k] = 0.0, 0.0
-    scale = np.zeros(3)
-    for k in range(dimensions):
-        if hi[k] > lo[k]:
-            scale[k] = cells[k] / (hi[k] - lo[k])
-    key = np.empty(n, dtype=np.int64)
-    start = np.zeros(total + 1, dtype=np.int64)
-    for p in range(n):
-        cell = 0
-        for k in range(dimensions - 1, -1, -1):
-            c = (x[p, k] - lo[k]) * scale[k]
-            j = int(c) if c > 0.0 and c < cells[k] else (cells[k] - 1 if c >= cells[k] else 0)
-            cell = cell * cells[k] + j
-        key[p] = cell
-        start[cell + 1] += 1
-    for c in range(total):
-        start[c + 1] += start[c]
-    for p in range(n):
-        out[start[key[p]]] = p
-        start[key[p]] += 1
-    return out
-
-
-@njit(cache=True, error_model='numpy')
-def sweep(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, has_own_mu,
-          restitution, wall_restitution, friction, mu, has_walls, low, high, dimensions,
-          gravity, has_gravity, resting_pair, resting_wall, has_resting, min_speed,
-          strike_speed, dt, rounds, planar, record, loss, totals, counts, workspace, order):
-    """Run one step of the swept stage in place; see ``SweptContactStage`` for the rules.
-
-    ``workspace``: (int64, float64, bool) buffers of at least
-    ``workspace_sizes(n, m, dimensions)`` elements.
-
-    ``a``, ``b``: the candidate pairs (at least one particle dynamic).
-    Fills ``loss`` (rows as ``EFFECTS``, per particle), ``totals`` (per
-    effect) and ``counts`` (pair impacts, wall impacts, rounds run, pairs
-    resolved), and
-    returns the impact records when ``record`` (floats: time, point,
-    normal, normal and tangential impulse, approach; ints: i, j with
-    j = -1 at a wall), in the order the numpy stage records them.
-
-    ``order``: a permutation of the particles (e.g. ``cell_order``), the
-    order they are copied in for the rounds, which then find the
-    neighbours of a particle in nearby memory (in the caller's order, a
-    large random gas missed the cache on nearly every partner); the pairs
-    are stored by their first particle in that order. Ties and the order
-    of resolution still follow the caller's pair order, and everything is
-    written back in the caller's order: the results do not depend on
-    ``order``.
-    """
-    n = x.shape[0]
-    m = a.size
-    ints, floats, flags = workspace
-    n_int, n_float, n_flag = 4 * m + 9 * n + 1, 2 * n * dimensions + 3 * n + m, 4 * n + m
-    inverse = ints[n_int:n_int + n]
-    local_a = ints[n_int + n:n_int + n + m]
-    local_b = ints[n_int + n + m:n_int + n + 2 * m]
-    pair_world = ints[n_int + n + 2 * m:n_int + n + 3 * m]
-    bucket = ints[n_int + n + 3 * m:n_int + 2 * n + 3 * m + 1]
-    renamed_a = ints[n_int + 2 * n + 3 * m + 1:n_int + 2 * n + 4 * m + 1]
-    renamed_b = ints[n_int + 2 * n + 4 * m + 1:n_int + 2 * n + 5 * m + 1]
-    local_x = floats[n_float:n_float + 3 * n].reshape((n, 3))
-    local_v = floats[n_float + 3 * n:n_float + 6 * n].reshape((n, 3))
-    local_ang = floats[n_float + 6 * n:n_float + 9 * n].reshape((n, 3))
-    local_inv_mass = floats[n_float + 9 * n:n_float + 10 * n]
-    local_radius = floats[n_float + 10 * n:n_float + 11 * n]
-    local_e = floats[n_float + 11 * n:n_float + 12 * n]
-    local_mu = floats[n_float + 12 * n:n_float + 13 * n]
-    local_dynamic = flags[n_flag:n_flag + n]
-    columns = 2 * dimensions
-    local_wall = flags[n_flag + n:n_flag + n + columns * n].reshape((n, columns))
-    local_resting = flags[n_flag + n + columns * n:n_flag + n + columns * n + m]
-    for q in range(n):
-        inverse[order[q]] = q
-    # Copied in the caller's order: the reads stream, the writes scatter
-    # (cheaper than scattered reads, which stall on the cache).
-    for p in range(n):
-        q = inverse[p]
-        for k in range(3):
-            local_x[q, k] = x[p, k]
-            local_v[q, k] = v[p, k]
-        local_inv_mass[q] = inv_mass[p]
-        local_radius[q] = radius[p]
-        local_dynamic[q] = dynamic[p]
-        # Spin, own coefficients and resting walls only where the step reads them.
-        if friction:
-            for k in range(3):
-                local_ang[q, k] = ang[p, k]
-        if has_own_e:
-            local_e[q] = own_e[p]
-        if has_own_mu:
-            local_mu[q] = own_mu[p]
-        if has_resting:
-            for c in range(columns):
-                local_wall[q, c] = resting_wall[p, c]
-    # Pairs by their first particle in memory order (a counting sort), so
-    # the first round's pass over every pair streams through memory.
-    bucket[:] = 0
-    for k in range(m):
-        i, j = inverse[a[k]], inverse[b[k]]
-        # Kept for the second pass (one scattered read of the inverse per pair).
-        renamed_a[k], renamed_b[k] = i, j
-        bucket[min(i, j) + 1] += 1
-    for q in range(n):
-        bucket[q + 1] += bucket[q]
-    for k in range(m):
-        i, j = renamed_a[k], renamed_b[k]
-        slot = bucket[min(i, j)]
-        bucket[min(i, j)] += 1
-        local_a[slot], local_b[slot] = i, j
-        pair_world[slot] = k
-    if has_resting:
-        for k in range(m):
-            local_resting[k] = resting_pair[pair_world[k]]
-    records, index = _rounds(
-        local_x, local_v, local_ang, local_inv_mass, local_radius, local_dynamic, local_a,
-        local_b, local_e, has_own_e, local_mu, has_own_mu, restitution, wall_restitution,
-        friction, mu, has_walls, low, high, dimensions, gravity, has_gravity, local_resting,
-        local_wall, has_resting, min_speed, strike_speed, dt, rounds, planar, record, loss,
-        totals, counts, (ints[:n_int], floats[:n_float], flags[:n_flag]), order, pair_world)
-    for q in range(n):
-        p = order[q]
-        for k in range(3):
-            x[p, k] = local_x[q, k]
-            v[p, k] = local_v[q, k]
-    if friction:
-        for q in range(n):
-            for k in range(3):
-                ang[order[q], k] = local_ang[q, k]
-    return records, index
 
 
 def warm_up() -> None:
@@ -899,7 +713,7 @@ def warm_up() -> None:
               gravity, bool(gravity.any()), np.zeros(2, dtype=bool),
               np.zeros((3, 6), dtype=bool), True, 0.1, 1.0, 1.0, 32, False, True,
               np.zeros((3, 3)), np.zeros(3), np.zeros(4, dtype=np.int64),
-              workspace(3, 2, 3), cell_order(x, 3, np.empty(3, dtype=np.int64)))
+              workspace(3, 2, 3))
 
 
 def kernels() -> list:

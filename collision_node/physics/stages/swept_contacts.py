@@ -72,7 +72,7 @@ from ..contact_law import (apply_pair_friction, apply_pair_impulses, apply_wall_
                            thresholded, wall_coefficient)
 from ..effects import Drag, Walls
 from ..paths import entering_time, parabola_sphere_time
-from ..swept_kernels import EFFECTS as KERNEL_EFFECTS, cell_order, sweep, workspace
+from ..swept_kernels import EFFECTS as KERNEL_EFFECTS, sweep, workspace
 from ..step import Stage, StepContext
 from .batched_impulses import shared_scale
 from .broadphase import BroadphaseStage
@@ -412,7 +412,6 @@ class SweptContactStage(Stage):
         totals = np.zeros(len(KERNEL_EFFECTS))
         counts = np.zeros(4, dtype=np.int64)
         self._workspace = workspace(n, a.size, d, self._workspace)
-        order = cell_order(s.position, d, np.empty(n, dtype=np.int64))
         records, index = sweep(
             s.position, s.velocity, spin, s.inv_mass, s.radius, dynamic, a, b,
             own_e, s.restitution is not None, own_mu, s.friction is not None,
@@ -421,7 +420,7 @@ class SweptContactStage(Stage):
             low, high, d, gravity, self.gravity is not None, resting_pair, resting_wall,
             has_resting, float(min_speed), STRIKE_FACTOR * min_speed, float(dt),
             int(self.rounds), d == 2, ctx.impacts is not None, loss, totals, counts,
-            self._workspace, order)
+            self._workspace)
         # The effects the numpy rounds book: restitution when a pair was resolved,
         # walls and friction when one hit.
         booked = (counts[3] > 0, counts[1] > 0,
