@@ -107,3 +107,43 @@ def test_compiled_sweep_runs_the_balanced_preset():
     stage = world.pipeline.stages[0]
     assert stage.name == 'swept_contacts' and stage.compiled
     assert stage.ordering == 'sequential' and stage.drag is None and not stage.requery
+
+
+@pytest.mark.parametrize('dimensions', [2, 3])
+def test_in_contact_kernel_matches_numpy_formula(dimensions):
+    """The compiled resting-contact marks equal the numpy expressions, entry by entry."""
+    from collision_node.physics.stages.swept_contacts import TOUCH_SLOP
+    from collision_node.physics.swept_kernels import in_contact
+    rng = np.random.default_rng(3)
+    n = 400
+    radius = rng.uniform(0.05, 0.1, n)
+    x = rng.uniform(-1.0, 1.0, (n, 3))
+    if dimensions == 2:
+        x[:, 2] = 0.0
+    a = rng.integers(0, n, 600)
+    b = rng.integers(0, n, 600)
+    # Pairs exactly in contact, just inside and just outside the slop.
+    direction = rng.normal(size=(200, 3))
+    direction[:, dimensions:] = 0.0
+    direction /= np.linalg.norm(direction, axis=1)[:, None]
+    reach = radius[a[:200]] + radius[b[:200]]
+    scale = 1.0 + TOUCH_SLOP * rng.choice([-1.0, 0.0, 0.999, 1.001, 2.0], 200)
+    x[b[:200]] = x[a[:200]] + direction * (reach * scale)[:, None]
+    low = np.array([-1.0, -1.0, -np.inf])
+    high = np.array([1.0, np.inf, 1.0])
+    x[:50, 0] = low[0] + radius[:50] * (1.0 + TOUCH_SLOP * rng.choice([-1.0, 0.5, 1.5], 50))
+    x[50:100, 0] = high[0] - radius[50:100] * (1.0 + TOUCH_SLOP * rng.choice([0.5, 1.5], 50))
+    x[100, 1] = np.nan
+    pairs = np.empty(a.size, dtype=bool)
+    walls = np.empty((n, 2 * dimensions), dtype=bool)
+    in_contact(x, radius, a, b, TOUCH_SLOP, True, low, high, dimensions, pairs, walls)
+    expected_pairs = np.linalg.norm(x[a] - x[b], axis=1) - (radius[a] + radius[b]) <= \
+        TOUCH_SLOP * (radius[a] + radius[b])
+    p, r = x[:, :dimensions], radius[:, None]
+    expected_walls = np.empty_like(walls)
+    with np.errstate(invalid='ignore'):
+        expected_walls[:, 0::2] = p - (low[:dimensions] + r) <= TOUCH_SLOP * r
+        expected_walls[:, 1::2] = (high[:dimensions] - r) - p <= TOUCH_SLOP * r
+    assert np.array_equal(pairs, expected_pairs)
+    assert np.array_equal(walls, expected_walls)
+    assert 20 < pairs.sum() < 200 and 20 < walls[:, 0:2].sum() < 100   # both outcomes occur
