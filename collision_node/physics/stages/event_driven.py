@@ -435,6 +435,7 @@ class EventDrivenStage(Stage):
         return ('exact event-driven: closed-form impact times (pairs, walls, gravity), '
                 f'per-particle event lists in a heap of particles, lazy invalidation, '
                 f'hash grid (a crossing predicts the new layer of cells), TC model t_c = '
-                f'{self.collapse_time:g} s; a step with resting contact under gravity or '
-                f'more than {self.event_budget} events per particle is solved by the '
-                f'{EVENT_FALLBACK} step solver')
+                f'{self.collapse_time:g} s; resting contact under gravity held by support '
+                f'forces (own accelerations, quartic pair times); a step with an impact onto '
+                f'resting particles, a collapsing bounce or more than {self.event_budget} '
+                f'events per particle is solved by the {EVENT_FALLBACK} step solver')
