@@ -286,9 +286,9 @@ def print_summary(world: World, result: dict) -> None:
         print(f'asleep at the end: {stats["asleep"]} of {len(world.state)} particles '
               '(sleeping islands, accuracy sleep_time)')
     if stats['fallback_steps']:
-        print(f'event mode: {stats["fallback_steps"]} of {world.steps} steps met resting '
-              'contact under gravity or passed the event budget and were solved by the '
-              'step fallback')
+        print(f'event mode: {stats["fallback_steps"]} of {world.steps} steps met an impact '
+              'onto resting particles, a collapsing bounce or the event budget and were '
+              'solved by the step fallback')
 
 
 if __name__ == '__main__':

@@ -45,14 +45,16 @@ Settings
     ``t_c`` of the TC model in event mode, seconds: an impact within t_c of
     either particle's previous impact is treated as elastic, so inelastic
     collapse (infinitely many impacts in finite time when e < 1) cannot
-    stall the event loop. Under gravity such an impact means resting
-    contact, and the step goes to the step solver instead (below).
+    stall the event loop. Under gravity such an impact means a particle
+    coming to rest, and the step goes to the step solver instead (below);
+    contacts already resting at a step's start are held by support forces.
 ``event_budget``
     Event mode: events (impacts, cell crossings) a step may take, per
     particle (at least ``MIN_EVENT_BUDGET`` in all). A step that needs more,
-    or that meets resting contact under gravity, is rolled back and solved
-    by the ``accurate`` step solver instead (see ``stages/event_driven.py``;
-    counted as ``fallback_steps`` in the stats).
+    or that meets what it cannot do exactly under gravity (an impact onto
+    particles resting on others, a collapsing bounce), is rolled back and
+    solved by the ``accurate`` step solver instead (see
+    ``stages/event_driven.py``; counted as ``fallback_steps`` in the stats).
 ``sleep_time``
     Step mode under gravity: seconds an island (particles connected by
     contacts; walls and static particles do not connect) must stay below

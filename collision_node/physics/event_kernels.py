@@ -100,9 +100,16 @@ CANDIDATES = 8
 R_TIME, R_POINT, R_NORMAL, R_IMPULSE, R_APPROACH = 0, 1, 4, 7, 8
 RECORD_COLUMNS = 9
 # Columns of ``params`` (float64).
-P_COLLAPSE, P_THRESHOLD, P_PAIR_E, P_WALL_E, P_CELL = range(5)
-# Columns of ``flags`` (int64).
-F_DIMS, F_GRAVITY, F_WALLS, F_OWN_E, F_RECORD, F_LOSSES = range(6)
+P_COLLAPSE, P_THRESHOLD, P_PAIR_E, P_WALL_E, P_CELL, P_END = range(6)
+PARAMS_SIZE = 6
+# Columns of ``flags`` (int64); F_VARIED: particles have accelerations of
+# their own (``accel``: resting contact, see ``resting_kernels``).
+F_DIMS, F_GRAVITY, F_WALLS, F_OWN_E, F_RECORD, F_LOSSES, F_VARIED = range(7)
+FLAGS_SIZE = 7
+# Columns of ``rest`` (int64, one row per particle, read when F_VARIED):
+# supported (1 or 0), the bit mask of the walls it rests on (bit = face),
+# then its resting partners (stage indices; a wall as -2 - face; -1 ends).
+S_SUPPORTED, S_WALLS, S_PARTNERS = 0, 1, 2
 
 _INF = np.inf
 
@@ -228,16 +235,23 @@ def _hold(p, q, at, stamp, clock, book, cand_time, cand_int):
 # -- paths --------------------------------------------------------------------
 
 @njit(cache=True, inline='always')
-def _advance(pos, vel, clock, gravity, half_g, p, when):
+def _advance(pos, vel, clock, gravity, half_g, accel, varied, p, when):
     """Bring particle ``p`` to time ``when`` on its parabola (``EventDrivenStage._advance``).
 
-    The operations of the vectorised form: x + (v tau + ((g / 2) tau) tau), v + g tau.
+    The operations of the vectorised form: x + (v tau + ((g / 2) tau) tau), v + g tau,
+    with p's own acceleration for g when particles have their own (``varied``).
     """
     tau = when - clock[p, C_REF]
-    for c in range(3):
-        pos[p, c] += vel[p, c] * tau + half_g[c] * tau * tau
-    for c in range(3):
-        vel[p, c] += gravity[c] * tau
+    if varied:
+        for c in range(3):
+            pos[p, c] += vel[p, c] * tau + (0.5 * accel[p, c]) * tau * tau
+        for c in range(3):
+            vel[p, c] += accel[p, c] * tau
+    else:
+        for c in range(3):
+            pos[p, c] += vel[p, c] * tau + half_g[c] * tau * tau
+        for c in range(3):
+            vel[p, c] += gravity[c] * tau
     clock[p, C_REF] = when
 
 
@@ -306,6 +320,156 @@ def pair_delay(dx, dy, dz, rx, ry, rz, reach):
     return c / (-half_b + math.sqrt(disc if not disc < 0.0 else 0.0))
 
 
+@njit(cache=True, error_model='numpy', inline='always')
+def _curved_gap(ox, oy, oz, wx, wy, wz, hx, hy, hz, s):
+    """Return F(s) = |o + w s + h s^2|^2 - 1 (a pair's scaled squared distance less 1)."""
+    x = ox + (wx + hx * s) * s
+    y = oy + (wy + hy * s) * s
+    z = oz + (wz + hz * s) * s
+    return _dot(x, y, z, x, y, z) - 1.0
+
+
+@njit(cache=True, error_model='numpy', inline='always')
+def _curved_slope(ox, oy, oz, wx, wy, wz, hx, hy, hz, s):
+    """Return F'(s) / 2 = D(s) . D'(s), D(s) = o + w s + h s^2 (a cubic in s)."""
+    x = ox + (wx + hx * s) * s
+    y = oy + (wy + hy * s) * s
+    z = oz + (wz + hz * s) * s
+    return _dot(x, y, z, wx + 2.0 * hx * s, wy + 2.0 * hy * s, wz + 2.0 * hz * s)
+
+
+@njit(cache=True, error_model='numpy', inline='always')
+def _slope_root(ox, oy, oz, wx, wy, wz, hx, hy, hz, lo, hi):
+    """Return the root of F' in [lo, hi], where F' is monotonic; inf if it keeps its sign."""
+    g_lo = _curved_slope(ox, oy, oz, wx, wy, wz, hx, hy, hz, lo)
+    g_hi = _curved_slope(ox, oy, oz, wx, wy, wz, hx, hy, hz, hi)
+    if (g_lo < 0.0) == (g_hi < 0.0):
+        return _INF
+    falling = g_lo < 0.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if not (lo < mid < hi):
+            break
+        if (_curved_slope(ox, oy, oz, wx, wy, wz, hx, hy, hz, mid) < 0.0) == falling:
+            lo = mid
+        else:
+            hi = mid
+    return hi
+
+
+@njit(cache=True, error_model='numpy')
+def curved_delay(dx, dy, dz, ux, uy, uz, ax, ay, az, reach, horizon):
+    """Delay until a pair whose accelerations differ touches, within ``horizon``; inf for none.
+
+    Offset d, relative velocity u and relative acceleration a: the offset
+    is d + u s + a s^2 / 2, so the squared distance less reach^2 is a
+    quartic F(s). The roots of F''s derivative (a quadratic, closed form)
+    split [0, horizon] where F' is monotonic, bisection finds F''s roots
+    there, and they split it where F is: the first piece on which F falls
+    to 0 holds the impact, found by bisection to round-off (the last time
+    at which the pair is apart). 0 for a pair touching or overlapping as it
+    starts to approach: at once, or later while still overlapping.
+    """
+    ox, oy, oz = dx / reach, dy / reach, dz / reach
+    wx, wy, wz = ux / reach, uy / reach, uz / reach
+    hx, hy, hz = 0.5 * ax / reach, 0.5 * ay / reach, 0.5 * az / reach
+    # Far apart for the whole horizon: |D(s)| >= |o| - |w| s - |h| s^2 > 1.
+    speed = math.sqrt(_dot(wx, wy, wz, wx, wy, wz))
+    curve = math.sqrt(_dot(hx, hy, hz, hx, hy, hz))
+    if math.sqrt(_dot(ox, oy, oz, ox, oy, oz)) - (speed + curve * horizon) * horizon > 1.0:
+        return _INF
+    # F'/2 = D . D' has derivative |D'|^2 + 2 h . D = A s^2 + B s + C.
+    a_ = 6.0 * _dot(hx, hy, hz, hx, hy, hz)
+    b_ = 6.0 * _dot(wx, wy, wz, hx, hy, hz)
+    c_ = _dot(wx, wy, wz, wx, wy, wz) + 2.0 * _dot(hx, hy, hz, ox, oy, oz)
+    # Break points of F': 0, the quadratic's roots inside, the horizon (no
+    # arrays: the event loop runs without the runtime that would allocate them).
+    cut1 = cut2 = horizon
+    disc = b_ * b_ - 4.0 * a_ * c_
+    if a_ > 0.0 and disc > 0.0:
+        root = math.sqrt(disc)
+        q = -0.5 * (b_ + (root if b_ >= 0.0 else -root))
+        r1 = q / a_
+        r2 = c_ / q if q != 0.0 else r1
+        if r1 > r2:
+            r1, r2 = r2, r1
+        if 0.0 < r1 < horizon:
+            cut1 = r1
+        if 0.0 < r2 < horizon:
+            if cut1 == horizon:
+                cut1 = r2
+            else:
+                cut2 = r2
+    # F's extrema (F' = 0), one at most between neighbouring break points.
+    ext0 = ext1 = ext2 = horizon
+    for k in range(3):
+        lo = 0.0 if k == 0 else (cut1 if k == 1 else cut2)
+        hi = cut1 if k == 0 else (cut2 if k == 1 else horizon)
+        if not hi > lo:
+            continue
+        extremum = _slope_root(ox, oy, oz, wx, wy, wz, hx, hy, hz, lo, hi)
+        if 0.0 < extremum < horizon:
+            if ext0 == horizon:
+                ext0 = extremum
+            elif ext1 == horizon:
+                ext1 = extremum
+            else:
+                ext2 = extremum
+    # Walk the pieces on which F is monotonic, in order.
+    start = 0.0
+    for k in range(4):
+        stop = ext0 if k == 0 else (ext1 if k == 1 else (ext2 if k == 2 else horizon))
+        if not stop > start:
+            continue
+        mid = 0.5 * (start + stop)
+        if _curved_slope(ox, oy, oz, wx, wy, wz, hx, hy, hz, mid) < 0.0:
+            if _curved_gap(ox, oy, oz, wx, wy, wz, hx, hy, hz, start) <= 0.0:
+                return start
+            if _curved_gap(ox, oy, oz, wx, wy, wz, hx, hy, hz, stop) <= 0.0:
+                lo, hi = start, stop
+                for _ in range(200):
+                    mid = 0.5 * (lo + hi)
+                    if not (lo < mid < hi):
+                        break
+                    if _curved_gap(ox, oy, oz, wx, wy, wz, hx, hy, hz, mid) > 0.0:
+                        lo = mid
+                    else:
+                        hi = mid
+                return lo
+        start = stop
+    return _INF
+
+
+@njit(cache=True, error_model='numpy', inline='always')
+def _varied_delay(p, q, when, horizon, pos, vel, radius, accel, rest, clock):
+    """Return when pair (p, q) meets, each with its own acceleration (``F_VARIED``).
+
+    Brings q to ``when`` first; p is there already. A resting partner of p
+    is never predicted (inf).
+    """
+    tau = when - clock[q, C_REF]
+    if tau != 0.0:
+        for c in range(3):
+            pos[q, c] += vel[q, c] * tau + (0.5 * accel[q, c]) * tau * tau
+        for c in range(3):
+            vel[q, c] += accel[q, c] * tau
+        clock[q, C_REF] = when
+    if rest[p, S_SUPPORTED] or rest[q, S_SUPPORTED]:
+        for s in range(S_PARTNERS, rest.shape[1]):
+            partner = rest[p, s]
+            if partner == q:
+                return _INF
+            if partner == -1:
+                break
+    ax, ay, az = accel[p, 0] - accel[q, 0], accel[p, 1] - accel[q, 1], accel[p, 2] - accel[q, 2]
+    dx, dy, dz = pos[p, 0] - pos[q, 0], pos[p, 1] - pos[q, 1], pos[p, 2] - pos[q, 2]
+    rx, ry, rz = vel[p, 0] - vel[q, 0], vel[p, 1] - vel[q, 1], vel[p, 2] - vel[q, 2]
+    reach = radius[p] + radius[q]
+    if ax == 0.0 and ay == 0.0 and az == 0.0:
+        return when + pair_delay(dx, dy, dz, rx, ry, rz, reach)
+    return when + curved_delay(dx, dy, dz, rx, ry, rz, ax, ay, az, reach, horizon)
+
+
 # -- the cell grid ------------------------------------------------------------
 
 @njit(cache=True, inline='always')
@@ -344,20 +508,25 @@ def _remove(p, cell, table, head, nxt, prv, occupancy):
 # -- prediction ---------------------------------------------------------------
 
 @njit(cache=True, error_model='numpy', inline='always')
-def _own_events(p, pos, vel, radius, gravity, low, high, params, flags, cell, clock, book,
-                walls_too):
+def _own_events(p, pos, vel, radius, gravity, accel, rest, low, high, params, flags, cell,
+                clock, book, walls_too):
     """Delays until p (at its reference time) leaves its cell and reaches a wall.
 
     Sets p's next crossing (and, with ``walls_too``, its next wall event) as
-    times; on a tie the lower face or wall of the lower axis is taken.
+    times; on a tie the lower face or wall of the lower axis is taken. With
+    accelerations of their own (``F_VARIED``) p moves with its own, and the
+    walls it rests on are not predicted (it neither closes nor opens on them).
     """
+    varied = flags[F_VARIED] != 0
+    resting_on = rest[p, S_WALLS] if varied else 0
     when = clock[p, C_REF]
     size = params[P_CELL]
     r = radius[p]
     best_wall, wall_col = _INF, -1
     best_cell, cell_col = _INF, 0
     for axis in range(flags[F_DIMS]):
-        x, v, g = pos[p, axis], vel[p, axis], gravity[axis]
+        x, v = pos[p, axis], vel[p, axis]
+        g = accel[p, axis] if varied else gravity[axis]
         low_face = cell[p, axis] * size
         t_low = entering(x - low_face, v, g)
         t_high = entering((low_face + size) - x, -v, -g)
@@ -366,8 +535,9 @@ def _own_events(p, pos, vel, radius, gravity, low, high, params, flags, cell, cl
         if t_high < best_cell:
             best_cell, cell_col = t_high, 2 * axis + 1
         if walls_too and flags[F_WALLS]:
-            w_low = entering(x - (low[axis] + r), v, g)
-            w_high = entering((high[axis] - r) - x, -v, -g)
+            w_low = _INF if resting_on >> (2 * axis) & 1 else entering(x - (low[axis] + r), v, g)
+            w_high = (_INF if resting_on >> (2 * axis + 1) & 1
+                      else entering((high[axis] - r) - x, -v, -g))
             if w_low < best_wall:
                 best_wall, wall_col = w_low, 2 * axis
             if w_high < best_wall:
@@ -381,14 +551,20 @@ def _own_events(p, pos, vel, radius, gravity, low, high, params, flags, cell, cl
 
 @njit(cache=True, error_model='numpy', inline='always')
 def _scan(p, when, along, offset, skip_before, pos, vel, inv_mass, radius, gravity, half_g,
-          flags, cell, table, head, nxt, clock, book, cand_time, cand_int):
+          accel, rest, params, flags, cell, table, head, nxt, clock, book, cand_time, cand_int):
     """Predict p against the particles of the cells around it; keep the impacts as candidates.
 
     ``along`` < 0: the 3^d cells around p's cell; otherwise the layer of
     3^(d-1) cells ``offset`` (+1 or -1) cells away along that axis. Dynamic
     particles below ``skip_before`` are left out (they predicted p already).
     A candidate later than either particle's next wall event is not kept.
+    With accelerations of their own (``F_VARIED``): a pair whose two
+    accelerations differ moves on a parabola relative to each other, so its
+    time is ``curved_delay``'s (within the step, to ``params[P_END]``), and
+    p's resting partners are not predicted.
     """
+    varied = flags[F_VARIED] != 0
+    horizon = params[P_END] - when
     dims = flags[F_DIMS]
     mx, my, mz = table[0], table[1], table[2]
     px, py, pz = cell[p, 0], cell[p, 1], cell[p, 2]
@@ -428,27 +604,33 @@ def _scan(p, when, along, offset, skip_before, pos, vel, inv_mass, radius, gravi
                 while q >= 0:
                     if q != p and cell[q, 0] == cx and cell[q, 1] == cy and cell[q, 2] == cz \
                             and not (q < skip_before and inv_mass[q] > 0.0):
-                        tau = when - clock[q, C_REF]
-                        if tau != 0.0:
-                            # _advance(q), written out: no arrays handed on.
-                            pos[q, 0] += vel[q, 0] * tau + hx * tau * tau
-                            pos[q, 1] += vel[q, 1] * tau + hy * tau * tau
-                            pos[q, 2] += vel[q, 2] * tau + hz * tau * tau
-                            vel[q, 0] += gx * tau
-                            vel[q, 1] += gy * tau
-                            vel[q, 2] += gz * tau
-                            clock[q, C_REF] = when
-                        at = when + pair_delay(
-                            px_ - pos[q, 0], py_ - pos[q, 1], pz_ - pos[q, 2],
-                            vx_ - vel[q, 0], vy_ - vel[q, 1], vz_ - vel[q, 2], r_p + radius[q])
+                        if varied:
+                            at = _varied_delay(p, q, when, horizon, pos, vel, radius, accel,
+                                               rest, clock)
+                        else:
+                            tau = when - clock[q, C_REF]
+                            if tau != 0.0:
+                                # _advance(q), written out: no arrays handed on.
+                                pos[q, 0] += vel[q, 0] * tau + hx * tau * tau
+                                pos[q, 1] += vel[q, 1] * tau + hy * tau * tau
+                                pos[q, 2] += vel[q, 2] * tau + hz * tau * tau
+                                vel[q, 0] += gx * tau
+                                vel[q, 1] += gy * tau
+                                vel[q, 2] += gz * tau
+                                clock[q, C_REF] = when
+                            at = when + pair_delay(
+                                px_ - pos[q, 0], py_ - pos[q, 1], pz_ - pos[q, 2],
+                                vx_ - vel[q, 0], vy_ - vel[q, 1], vz_ - vel[q, 2],
+                                r_p + radius[q])
                         if at < wall_p and at < clock[q, C_WALL]:
                             _hold(p, q, at, book[q, B_COUNT], clock, book, cand_time, cand_int)
                     q = nxt[q]
 
 
 @njit(cache=True, error_model='numpy')
-def _predict(p, bump, skip_before, pos, vel, inv_mass, radius, gravity, half_g, low, high,
-             params, flags, cell, table, head, nxt, clock, book, cand_time, cand_int, meta):
+def _predict(p, bump, skip_before, pos, vel, inv_mass, radius, gravity, half_g, accel, rest,
+             low, high, params, flags, cell, table, head, nxt, clock, book, cand_time,
+             cand_int, meta):
     """Predict particle p (at its reference time) afresh: walls, cell, 3^d cells around.
 
     ``bump``: p's path changed, so the candidates others hold with p go stale.
@@ -460,10 +642,10 @@ def _predict(p, bump, skip_before, pos, vel, inv_mass, radius, gravity, half_g, 
     meta[PREDICTIONS] += 1
     book[p, B_HELD] = 0
     clock[p, C_REFRESH] = _INF
-    _own_events(p, pos, vel, radius, gravity, low, high, params, flags, cell, clock, book,
-                True)
+    _own_events(p, pos, vel, radius, gravity, accel, rest, low, high, params, flags, cell,
+                clock, book, True)
     _scan(p, clock[p, C_REF], -1, 0, skip_before, pos, vel, inv_mass, radius, gravity, half_g,
-          flags, cell, table, head, nxt, clock, book, cand_time, cand_int)
+          accel, rest, params, flags, cell, table, head, nxt, clock, book, cand_time, cand_int)
     _set_key(p, clock, book, cand_time)
 
 
@@ -538,16 +720,42 @@ def _record(rec_f, rec_ij, meta, when, i, j, px, py, pz, nx, ny, nz, impulse, ap
     meta[RECORDED] = k + 1
 
 
+@njit(cache=True, inline='always')
+def _keeps_supports(rest, p, nx, ny, nz):
+    """Say whether an impulse along N on particle p leaves its supports as they are.
+
+    True for a particle that is not supported, and for one that rests on
+    walls only, each at right angles to N (a ball rolling on a floor struck
+    sideways); an impulse on a particle resting on others would change
+    their normal speeds too.
+    """
+    if not rest[p, S_SUPPORTED]:
+        return True
+    walls = rest[p, S_WALLS]
+    for s in range(S_PARTNERS, rest.shape[1]):
+        partner = rest[p, s]
+        if partner == -1:
+            break
+        if partner >= 0:
+            return False
+    if walls & 3 and nx != 0.0:
+        return False
+    if walls & 12 and ny != 0.0:
+        return False
+    if walls & 48 and nz != 0.0:
+        return False
+    return True
+
+
 # Without the runtime's reference counting (``_nrt=False``): the kernel
 # allocates nothing, and the counts numba keeps for every array handed to an
 # inlined helper cost atomic updates in the innermost loops (13 % of the
 # loop's time, measured with perf).
 @njit(cache=True, error_model='numpy', _nrt=False)
-def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, half_g, low, high,
-               params,
-               flags, cell, table, head, nxt, prv, occupancy, clock, book, cand_time,
-               cand_int, heap_key, heap_int, meta, totals, losses, rec_f, rec_ij, perm,
-               out_pos, out_vel):
+def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, half_g, accel, rest,
+               low, high, params, flags, cell, table, head, nxt, prv, occupancy, clock, book,
+               cand_time, cand_int, heap_key, heap_int, meta, totals, losses, rec_f, rec_ij,
+               perm, out_pos, out_vel):
     """Process every event up to ``end``, then publish every particle at ``end``.
 
     The stage's particles are the world's in another order (neighbours
@@ -562,9 +770,13 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, half_g, 
     are full: call again with larger ones (their rows so far copied).
     ``totals`` (restitution, walls) accumulate the energy booked, ``losses``
     the per-particle share, impacts go to the record arrays when
-    ``flags[F_RECORD]``; ``half_g`` is g / 2.
+    ``flags[F_RECORD]``; ``half_g`` is g / 2. With ``F_VARIED`` each
+    particle moves with its own acceleration (``accel``), and an impact that
+    would change the normal speed at a support of a supported particle
+    (``rest``; see ``_keeps_supports``) also ends the attempt (``NOT_EXACT``).
     """
     under_gravity = flags[F_GRAVITY] != 0
+    varied = flags[F_VARIED] != 0
     collapse = params[P_COLLAPSE]
     threshold = params[P_THRESHOLD]
     has_own = flags[F_OWN_E] != 0
@@ -597,7 +809,7 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, half_g, 
             meta[REFRESHES] += 1
             if meta[CHORES] > 4 * budget:
                 return NOT_EXACT
-            _advance(pos, vel, clock, gravity, half_g, p, when)
+            _advance(pos, vel, clock, gravity, half_g, accel, varied, p, when)
             bump = False
         else:
             if meta[EVENTS] >= budget:
@@ -607,11 +819,14 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, half_g, 
             pass
         elif which >= 0:
             q = cand_int[p, which, 0]
-            _advance(pos, vel, clock, gravity, half_g, p, when)
-            _advance(pos, vel, clock, gravity, half_g, q, when)
+            _advance(pos, vel, clock, gravity, half_g, accel, varied, p, when)
+            _advance(pos, vel, clock, gravity, half_g, accel, varied, q, when)
             rx, ry, rz = vel[p, 0] - vel[q, 0], vel[p, 1] - vel[q, 1], vel[p, 2] - vel[q, 2]
             nx, ny, nz, _ = line_of_action(pos[p, 0] - pos[q, 0], pos[p, 1] - pos[q, 1],
                                            pos[p, 2] - pos[q, 2], rx, ry, rz)
+            if varied and -_dot(rx, ry, rz, nx, ny, nz) > 0.0 and not (
+                    _keeps_supports(rest, p, nx, ny, nz) and _keeps_supports(rest, q, nx, ny, nz)):
+                return NOT_EXACT
             e = pair_restitution(own_e, has_own, p, q, params[P_PAIR_E])
             if threshold > 0.0 and -_dot(rx, ry, rz, nx, ny, nz) < threshold:
                 e = 0.0
@@ -645,13 +860,17 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, half_g, 
             if inv_mass[q] > 0.0:      # a static particle's events stay valid
                 second = q
         elif which == NEXT_WALL:
-            _advance(pos, vel, clock, gravity, half_g, p, when)
+            _advance(pos, vel, clock, gravity, half_g, accel, varied, p, when)
             face = book[p, B_WALL]
             axis, side = face // 2, face % 2
             toward = 1.0 if side else -1.0      # direction of the wall along the axis
             speed_in = toward * vel[p, axis]
-            pushed_in = toward * gravity[axis]
+            pushed_in = toward * (accel[p, axis] if varied else gravity[axis])
             if speed_in > 0.0 or (speed_in == 0.0 and pushed_in > 0.0):
+                if varied and not _keeps_supports(rest, p, 1.0 if axis == 0 else 0.0,
+                                                  1.0 if axis == 1 else 0.0,
+                                                  1.0 if axis == 2 else 0.0):
+                    return NOT_EXACT
                 e = wall_restitution(own_e, has_own, p, params[P_WALL_E])
                 if threshold > 0.0 and speed_in < threshold:
                     e = 0.0
@@ -684,7 +903,7 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, half_g, 
                 clock[p, C_LAST] = when
         elif which == NEXT_CELL:
             meta[CROSSINGS] += 1
-            _advance(pos, vel, clock, gravity, half_g, p, when)
+            _advance(pos, vel, clock, gravity, half_g, accel, varied, p, when)
             crossing = True
         # One site for all predictions: the helpers are inlined here, and
         # arrays passed to a function that is called cost reference counting.
@@ -702,14 +921,14 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, half_g, 
                 meta[PREDICTIONS] += 1
                 book[r, B_HELD] = 0
                 clock[r, C_REFRESH] = _INF
-            _own_events(r, pos, vel, radius, gravity, low, high, params, flags, cell, clock,
-                        book, not crossing)
-            _scan(r, when, along, offset, 0, pos, vel, inv_mass, radius, gravity, half_g, flags,
-                  cell, table, head, nxt, clock, book, cand_time, cand_int)
+            _own_events(r, pos, vel, radius, gravity, accel, rest, low, high, params, flags, cell,
+                        clock, book, not crossing)
+            _scan(r, when, along, offset, 0, pos, vel, inv_mass, radius, gravity, half_g, accel,
+                  rest, params, flags, cell, table, head, nxt, clock, book, cand_time, cand_int)
             _set_key(r, clock, book, cand_time)
             heap_update(clock, heap_key, heap_int, r)
     for p in range(pos.shape[0]):
-        _advance(pos, vel, clock, gravity, half_g, p, end)
+        _advance(pos, vel, clock, gravity, half_g, accel, varied, p, end)
         k = perm[p]
         for c in range(3):
             out_pos[k, c] = pos[p, c]
@@ -718,9 +937,9 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, half_g, 
 
 
 @njit(cache=True, error_model='numpy')
-def build_events(when, pos, vel, inv_mass, radius, gravity, low, high, params, flags, cell,
-                 table, head, nxt, prv, occupancy, clock, book, cand_time, cand_int, heap_key,
-                 heap_int, meta):
+def build_events(when, pos, vel, inv_mass, radius, gravity, accel, rest, low, high, params,
+                 flags, cell, table, head, nxt, prv, occupancy, clock, book, cand_time,
+                 cand_int, heap_key, heap_int, meta):
     """Fill the grid, predict every dynamic particle (each pair once) and order the heap.
 
     ``clock`` comes with every reference time at ``when``, no impact yet, no
@@ -732,9 +951,9 @@ def build_events(when, pos, vel, inv_mass, radius, gravity, low, high, params, f
         _insert(p, cell, table, head, nxt, prv, occupancy, meta)
     for p in range(n):
         if inv_mass[p] > 0.0:
-            _predict(p, False, p, pos, vel, inv_mass, radius, gravity, half_g, low, high,
-                     params, flags, cell, table, head, nxt, clock, book, cand_time, cand_int,
-                     meta)
+            _predict(p, False, p, pos, vel, inv_mass, radius, gravity, half_g, accel, rest,
+                     low, high, params, flags, cell, table, head, nxt, clock, book, cand_time,
+                     cand_int, meta)
         else:
             book[p, B_NEXT] = NEXT_NONE
     heapify(clock, heap_key, heap_int)
@@ -773,8 +992,9 @@ def warm_up() -> None:
     vel = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
     inv_mass, radius = np.ones(2), np.full(2, 0.25)
     gravity, low, high = np.zeros(3), np.full(3, -1.0), np.full(3, 1.0)
-    params = np.array([1e-5, 0.0, 1.0, 1.0, 0.5])
-    flags = np.array([3, 0, 1, 1, 1, 1], dtype=np.int64)
+    params = np.array([1e-5, 0.0, 1.0, 1.0, 0.5, 1.0])
+    flags = np.array([3, 0, 1, 1, 1, 1, 0], dtype=np.int64)
+    accel, rest = new_supports(2, 1)
     table = np.full(3, 7, dtype=np.int64)
     cell = np.zeros((2, 6), dtype=np.int64)
     cell[:, :3] = np.floor(pos / 0.5)
@@ -784,19 +1004,31 @@ def warm_up() -> None:
     clock, book, cand_time, cand_int, heap_key, heap_int = new_arrays(2)
     clock[:, C_REF] = 0.0
     meta = np.zeros(META_SIZE, dtype=np.int64)
-    build_events(0.0, pos, vel, inv_mass, radius, gravity, low, high, params, flags, cell,
-                 table, head, nxt, prv, occupancy, clock, book, cand_time, cand_int, heap_key,
-                 heap_int, meta)
+    build_events(0.0, pos, vel, inv_mass, radius, gravity, accel, rest, low, high, params,
+                 flags, cell, table, head, nxt, prv, occupancy, clock, book, cand_time, cand_int,
+                 heap_key, heap_int, meta)
     out_pos, out_vel = pos.copy(), vel.copy()
     perm = np.arange(2)
-    run_events(1.0, 1000, pos, vel, inv_mass, radius, np.full(2, np.nan), gravity, gravity, low,
-               high, params, flags, cell, table, head, nxt, prv, occupancy, clock, book,
-               cand_time, cand_int, heap_key, heap_int, meta, np.zeros(2), np.zeros(2),
+    run_events(1.0, 1000, pos, vel, inv_mass, radius, np.full(2, np.nan), gravity, gravity,
+               accel, rest, low, high, params, flags, cell, table, head, nxt, prv, occupancy,
+               clock, book, cand_time, cand_int, heap_key, heap_int, meta, np.zeros(2),
+               np.zeros(2),
                np.empty((4, RECORD_COLUMNS)), np.empty((4, 2), dtype=np.int64), perm, out_pos,
                out_vel)
     matches(out_pos, out_vel, inv_mass, radius, pos, vel, inv_mass, radius, perm)
+    curved_delay(1.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.5, 1.0)
+
+
+def new_supports(n: int, partners: int) -> tuple:
+    """Return (accel, rest) for ``n`` particles with room for ``partners`` resting partners.
+
+    No particle supported, no partner: read only under ``F_VARIED``.
+    """
+    rest = np.zeros((n, S_PARTNERS + partners), dtype=np.int64)
+    rest[:, S_PARTNERS:] = -1
+    return np.zeros((n, 3)), rest
 
 
 def kernels() -> list:
     """Return the compiled kernels of this module (the ones a warm-up compiles)."""
-    return [build_events, run_events, matches]
+    return [build_events, run_events, matches, curved_delay]

@@ -41,20 +41,32 @@ Inelastic collapse (infinitely many impacts in finite time when e < 1)
 without gravity is stopped with the TC model: an impact within
 ``collapse_time`` (t_c) of either particle's previous impact is elastic.
 
-Resting contact under gravity is where event-driven exactness ends: a
-particle resting on a wall or on others meets them again at once with
-zero speed, again and again (the TC model would make it hop every t_c,
-hundreds of events a step, adding energy, and make any impact on it
-elastic). So under gravity an event in the collapse regime that the TC
-model would alter (e < 1, or a particle pushed into a wall with about no
-speed) ends the step's exact attempt, and so does a step that needs more
-events than its budget (``event_budget`` per particle, at least
+Resting contact under gravity: a particle resting on a wall or on others
+would meet them again at once with zero speed, again and again (the TC
+model would make it hop every t_c, hundreds of events a step, adding
+energy). So at the start of every step under gravity the stage finds the
+resting contacts (touching, normal speed below the restitution threshold:
+the declared one, or 2 |g| dt), sets their normal speeds to zero (the
+energy this takes is booked to their contacts) and solves their
+frictionless support forces (``resting_kernels``). A particle they hold
+(a supported one) moves for the step with its own constant acceleration
+(g plus its support forces over its mass: 0 in a column or a packed pile
+at rest) and its resting contacts are not predicted; a pair whose
+accelerations differ meets at the first root of a quartic
+(``event_kernels.curved_delay``). Supports are held for the step: exact
+for a cluster at rest, first order in dt for one that slides. An impact
+that would change a support's normal speed (a ball dropped on a resting
+pile, say) is what this cannot do exactly, and so is an event in the
+collapse regime that the TC model would alter under gravity (e < 1, or a
+particle pushed into a wall with about no speed) and a step that needs
+more events than its budget (``event_budget`` per particle, at least
 ``MIN_EVENT_BUDGET``: a dense cluster, say). Such a step is rolled back
-(state and counters) and solved by the ``accurate`` step solver instead,
-counted in ``fallback_steps``; after k fallbacks in a row the next
-2^k - 1 steps (at most ``MAX_FALLBACK_HOLD``) go straight to the step
-solver before event mode is tried again, so a pile at rest pays for the
-attempt only now and then.
+(state and counters; the resting contacts' zeroed speeds stay, with their
+bookings) and solved by the ``accurate`` step solver instead, counted in
+``fallback_steps``; after k fallbacks in a row the next 2^k - 1 steps (at
+most ``MAX_FALLBACK_HOLD``) go straight to the step solver before event
+mode is tried again. A particle struck sideways while it rests on walls
+only (a ball rolling on a floor) keeps its supports: that impact is exact.
 
 Scenes with an effect other than particles, walls, restitution and gravity
 are refused (:func:`collision_node.physics.accuracy.check_event_mode`), and so are
@@ -70,10 +82,12 @@ from typing import Callable, Optional
 import numpy as np
 
 from .. import event_kernels as ek
+from .. import resting_kernels as rk
 from ..accuracy import (AccuracySettings, check_event_mode, check_event_particles,
                         EVENT_FALLBACK, MIN_EVENT_BUDGET, PRESETS)
 from ..effects import Effects
 from ..step import Pipeline, Stage, StepContext
+from .broadphase import candidate_pairs
 from ..state import ParticleState
 
 PAIR, WALL, CELL = ek.PAIR, ek.WALL, ek.CELL
@@ -113,6 +127,11 @@ class EventDrivenStage(Stage):
         self.event_budget = accuracy.event_budget
         self.accuracy, self.effects = accuracy, effects
         self.half_g = 0.5 * self.gravity
+        if self.walls is not None:
+            self.low_walls = np.asarray(self.walls.low, float)
+            self.high_walls = np.asarray(self.walls.high, float)
+        else:
+            self.low_walls, self.high_walls = np.full(3, -np.inf), np.full(3, np.inf)
         self.under_gravity = bool(np.any(self.gravity != 0.0))
         self.particles_per_cell = float(particles_per_cell)
         # A declared restitution threshold is part of the contact law. The
@@ -129,11 +148,20 @@ class EventDrivenStage(Stage):
         self._build_fallback = fallback
         self._fallback_streak = 0
         self._hold = 0
+        # Resting contact (under gravity): this step's accelerations and
+        # supports in the world's order (None: nobody is supported), whether
+        # the last step had any, and the last step's partners and forces
+        # (world indices; the next solve's warm start). Steps with supports.
+        self._supports: Optional[tuple] = None
+        self._varied_last = False
+        self._old_partner = np.full((0, rk.PARTNERS), -1, dtype=np.int64)
+        self._old_force = np.zeros((0, rk.PARTNERS))
+        self.supported_steps = 0
 
     # -- bookkeeping -------------------------------------------------------
 
-    def _rebuild(self, state: ParticleState, dimensions: int) -> None:
-        """Set up clocks, grid and predictions for ``state`` at ``self.time``."""
+    def _rebuild(self, state: ParticleState, dimensions: int, end: float) -> None:
+        """Set up clocks, grid and predictions for ``state`` at ``self.time`` (step to ``end``)."""
         n = len(state)
         # Scenes, accuracy switches and spawns are checked on entry; this guards
         # a state handed to the stage some other way, with the same message.
@@ -166,23 +194,90 @@ class EventDrivenStage(Stage):
         self.next = np.full(n, -1, dtype=np.int64)
         self.previous = np.full(n, -1, dtype=np.int64)
         self.meta = np.zeros(ek.META_SIZE, dtype=np.int64)
-        if self.walls is not None:
-            self.low = np.asarray(self.walls.low, float)
-            self.high = np.asarray(self.walls.high, float)
-        else:
-            self.low, self.high = np.full(3, -np.inf), np.full(3, np.inf)
+        self.low, self.high = self.low_walls, self.high_walls
         own = state.restitution
         self.own_e = np.full(n, np.nan) if own is None else np.asarray(own, float)[self.perm]
         self.params = np.array([self.collapse_time, self.threshold, self.restitution,
                                 1.0 if self.walls is None else self.walls.restitution,
-                                self.cell_size])
+                                self.cell_size, end])
         self.flags = np.array([dimensions, self.under_gravity, self.walls is not None,
-                               own is not None, 0, 0], dtype=np.int64)
+                               own is not None, 0, 0, self._supports is not None],
+                              dtype=np.int64)
+        self.accel, self.rest = self._stage_supports(n)
         ek.build_events(self.time, self.position, self.velocity, self.inv_mass, self.radius,
-                        self.gravity, self.low, self.high, self.params, self.flags, self.cell,
-                        self.table, self.head, self.next, self.previous, self.occupancy,
-                        self.clock, self.book, self.cand_time, self.cand_int, self.heap_key,
-                        self.heap_int, self.meta)
+                        self.gravity, self.accel, self.rest, self.low, self.high, self.params,
+                        self.flags, self.cell, self.table, self.head, self.next, self.previous,
+                        self.occupancy, self.clock, self.book, self.cand_time, self.cand_int,
+                        self.heap_key, self.heap_int, self.meta)
+
+    def _stage_supports(self, n: int) -> tuple:
+        """Return this step's (accel, rest) in the stage's order (no rows: nobody supported)."""
+        if self._supports is None:
+            return ek.new_supports(0, rk.PARTNERS)
+        accel, rest = self._supports
+        inverse = np.empty(n, dtype=np.int64)
+        inverse[self.perm] = np.arange(n)
+        rest = rest[self.perm]
+        partners = rest[:, ek.S_PARTNERS:]
+        # Partners are particles (world index, >= 0) or walls (< -1); -1 ends a list.
+        partners[partners >= 0] = inverse[partners[partners >= 0]]
+        return np.ascontiguousarray(accel[self.perm]), rest
+
+    def _find_supports(self, ctx: StepContext) -> bool:
+        """Find the resting contacts and supports of this step (``resting_kernels``).
+
+        Sets their normal speeds to zero in the world's state, books the
+        energy that takes to their contacts and keeps each particle's
+        acceleration and supports for the step in ``self._supports`` (None
+        when nobody is supported). Returns False when a particle rests on
+        more than ``resting_kernels.PARTNERS`` others (the step falls back).
+        """
+        state = ctx.state
+        n, dims = len(state), ctx.dimensions
+        self._supports = None
+        position, velocity = state.position, state.velocity
+        inv_mass, radius = state.inv_mass, state.radius
+        scale = float(np.max(np.abs(position))) if n else 0.0
+        reach = radius * (1.0 + 4.0 * rk.RESTING_GAP) + 2.0 * rk.RESTING_ULPS * np.spacing(scale)
+        cand_i, cand_j = candidate_pairs(position, reach)
+        size = cand_i.size + 2 * dims * n
+        c_i, c_j = np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64)
+        c_normal = np.empty((size, 3))
+        rest_speed = ctx.effects.threshold(ctx.dt)
+        m = rk.collect(position, velocity, inv_mass, radius, cand_i, cand_j, self.low_walls,
+                       self.high_walls, dims, rest_speed, c_i, c_j, c_normal)
+        if m == 0:
+            self._old_partner = np.full((0, rk.PARTNERS), -1, dtype=np.int64)
+            return True
+        info = np.zeros(rk.INFO_SIZE)
+        removed = np.empty(m)
+        rk.project_velocities(velocity, inv_mass, m, c_i, c_j, c_normal,
+                              rk.VELOCITY_TOLERANCE * rest_speed, removed, info)
+        pairs = c_j[:m] >= 0
+        if np.any(removed[pairs] != 0.0):
+            ctx.book('restitution', removed[pairs], c_i[:m][pairs], c_j[:m][pairs])
+        if np.any(removed[~pairs] != 0.0):
+            ctx.book('walls', removed[~pairs], c_i[:m][~pairs])
+        force = np.empty(m)
+        rk.warm_forces(m, c_i, c_j, self._old_partner, self._old_force, force)
+        accel = np.empty((n, 3))
+        rk.support_forces(accel, inv_mass, self.gravity, m, c_i, c_j, c_normal, force,
+                          rk.ACCELERATION_TOLERANCE * float(np.linalg.norm(self.gravity)), info)
+        rest = np.empty((n, ek.S_PARTNERS + rk.PARTNERS), dtype=np.int64)
+        partner_force = np.zeros((n, rk.PARTNERS))
+        supported, walls = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
+        partner = np.empty((n, rk.PARTNERS), dtype=np.int64)
+        status = rk.supports(accel, inv_mass, self.gravity, m, c_i, c_j, force, supported,
+                             partner, partner_force, walls)
+        self._old_partner, self._old_force = partner, partner_force
+        self.resting_info = info
+        if status != rk.FOUND:
+            return False
+        if supported.any():
+            rest[:, ek.S_SUPPORTED], rest[:, ek.S_WALLS] = supported, walls
+            rest[:, ek.S_PARTNERS:] = partner
+            self._supports = (accel, rest)
+        return True
 
     def _choose_cell_size(self, state: ParticleState, dimensions: int) -> float:
         """Cells at least one contact diameter wide, ``particles_per_cell`` each."""
@@ -240,11 +335,22 @@ class EventDrivenStage(Stage):
             self._fallback_step(ctx)
             return
         state = ctx.state
+        end = self.time + ctx.dt
+        if self.under_gravity and len(state):
+            if not self._find_supports(ctx):
+                self._fall_back(ctx)
+                return
+            varied = self._supports is not None
+            if varied or self._varied_last:
+                # Accelerations are the step's: every path is predicted afresh.
+                self._state = None
+            self._varied_last = varied
+            self.supported_steps += varied
         if not self._still_valid(state):
-            self._rebuild(state, ctx.dimensions)
+            self._rebuild(state, ctx.dimensions, end)
+        self.params[ek.P_END] = end
         n = len(state)
         budget = max(MIN_EVENT_BUDGET, self.event_budget * n)
-        end = self.time + ctx.dt
         record = ctx.impacts is not None
         self.flags[ek.F_RECORD] = record
         self.flags[ek.F_LOSSES] = ctx.losses is not None
@@ -264,7 +370,8 @@ class EventDrivenStage(Stage):
         while True:
             status = ek.run_events(
                 end, budget, self.position, self.velocity, self.inv_mass, self.radius,
-                self.own_e, self.gravity, self.half_g, self.low, self.high, self.params,
+                self.own_e, self.gravity, self.half_g, self.accel, self.rest, self.low,
+                self.high, self.params,
                 self.flags, self.cell, self.table, self.head, self.next, self.previous,
                 self.occupancy, self.clock, self.book, self.cand_time, self.cand_int,
                 self.heap_key, self.heap_int, meta, totals, losses, rec_f, rec_ij, self.perm,
@@ -276,9 +383,7 @@ class EventDrivenStage(Stage):
             rec_ij = np.concatenate([rec_ij, np.empty_like(rec_ij)])
         if status != ek.DONE:
             # The world's state is untouched: let the step solver take the step.
-            self._fallback_streak += 1
-            self._hold = min(2 ** self._fallback_streak - 1, MAX_FALLBACK_HOLD)
-            self._fallback_step(ctx)
+            self._fall_back(ctx)
             return
         self._fallback_streak = 0
         self.events += int(meta[ek.EVENTS])
@@ -303,6 +408,13 @@ class EventDrivenStage(Stage):
                                rows_f[:, ek.R_IMPULSE], 0.0, rows_f[:, ek.R_APPROACH])
         self.time = end
 
+    def _fall_back(self, ctx: StepContext) -> None:
+        """Hand this step to the step solver and hold the next ones there a while."""
+        self._fallback_streak += 1
+        self._hold = min(2 ** self._fallback_streak - 1, MAX_FALLBACK_HOLD)
+        self._varied_last = True        # the paths predicted are stale
+        self._fallback_step(ctx)
+
     def _fallback_step(self, ctx: StepContext) -> None:
         """Advance this step with the step solver (``EVENT_FALLBACK`` preset)."""
         settings = PRESETS[EVENT_FALLBACK]
@@ -323,6 +435,7 @@ class EventDrivenStage(Stage):
         return ('exact event-driven: closed-form impact times (pairs, walls, gravity), '
                 f'per-particle event lists in a heap of particles, lazy invalidation, '
                 f'hash grid (a crossing predicts the new layer of cells), TC model t_c = '
-                f'{self.collapse_time:g} s; a step with resting contact under gravity or '
-                f'more than {self.event_budget} events per particle is solved by the '
-                f'{EVENT_FALLBACK} step solver')
+                f'{self.collapse_time:g} s; resting contact under gravity held by support '
+                f'forces (own accelerations, quartic pair times); a step with an impact onto '
+                f'resting particles, a collapsing bounce or more than {self.event_budget} '
+                f'events per particle is solved by the {EVENT_FALLBACK} step solver')
