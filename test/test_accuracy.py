@@ -74,32 +74,53 @@ def test_event_mode_refuses_effects_it_cannot_do_exactly():
 
 STATIC_UNDER_GRAVITY = [{'position': [0, 0, 0], 'radius': 0.1, 'mass': 1.0},
                         {'position': [0, 0, -1], 'radius': 0.1, 'mass': float('inf')}]
-STATIC_MESSAGE = (r'^test-scene: particles\[1\]\.mass: a static particle \(mass \.inf\) under '
-                  r'gravity cannot be simulated exactly by mode event')
 
 
-def test_event_mode_refuses_static_particles_under_gravity_at_load():
-    with pytest.raises(SceneError, match=STATIC_MESSAGE):
-        world('exact', effects={'gravity': [0, 0, -9.81]}, particles=STATIC_UNDER_GRAVITY)
-    # The same scene under a step preset, then switched to exact (runner
-    # flag, node parameter): refused at the switch, not at the first step.
-    scene = parse_scene(dict(accuracy='accurate', effects={'gravity': [0, 0, -9.81]},
-                             particles=STATIC_UNDER_GRAVITY), 'test-scene')
-    with pytest.raises(SceneError, match=STATIC_MESSAGE):
-        scene.with_accuracy(PRESETS['exact'])
-    # Without gravity a static particle is fine in event mode.
-    world('exact', particles=STATIC_UNDER_GRAVITY).step()
+def test_exact_ball_falls_onto_a_static_ball_at_the_parabola_time():
+    """A ball falls 0.8 m onto a static ball (e = 1): it meets it at sqrt(2 0.8 / g).
+
+    The static ball does not fall, so their relative path is a parabola
+    (a quartic's root); the ball leaves at its impact speed and is back at
+    its start height at twice that time. No step solver step.
+    """
+    g = 9.81
+    w = world('exact', dt=0.01, effects={'gravity': [0, 0, -g]}, particles=STATIC_UNDER_GRAVITY)
+    w.record_impacts(True)
+    fall = np.sqrt(2 * 0.8 / g)
+    w.step(int(np.ceil(fall / 0.01)))
+    impacts = w.take_impacts()
+    assert len(impacts) == 1
+    assert impacts['time'][0] == pytest.approx(fall, rel=1e-12)
+    assert impacts['closing_speed'][0] == pytest.approx(g * fall, rel=1e-12)
+    np.testing.assert_allclose(impacts['normal'][0], [0, 0, 1], atol=1e-12)
+    np.testing.assert_array_equal(w.state.position[1], [0, 0, -1])
+    assert w.state.velocity[0, 2] == pytest.approx(g * fall - g * (w.time - fall), rel=1e-12)
+    assert w.stats.fallback_steps == 0
 
 
-def test_event_mode_refuses_a_static_spawn_under_gravity_and_keeps_the_world():
-    w = world('exact', effects={'gravity': [0, 0, -9.81]}, particles=STATIC_UNDER_GRAVITY[:1])
+def test_exact_ball_rests_on_a_static_ball_held_by_its_support():
+    """A ball touching a static one from above at rest: it stays, event-driven."""
+    particles = [{'position': [0, 0, -0.8], 'radius': 0.1, 'mass': 1.0},
+                 STATIC_UNDER_GRAVITY[1]]
+    w = world('exact', dt=0.01, effects={'gravity': [0, 0, -9.81]}, particles=particles)
+    w.step(100)
+    np.testing.assert_array_equal(w.state.velocity, 0.0)
+    np.testing.assert_allclose(w.state.position[0], [0, 0, -0.8], atol=1e-15)
+    assert w.stats.fallback_steps == 0
+
+
+def test_exact_takes_a_static_spawn_under_gravity():
+    """A static particle spawned under gravity joins the exact world; a ball lands on it."""
+    w = world('exact', dt=0.01, effects={'gravity': [0, 0, -9.81]},
+              particles=STATIC_UNDER_GRAVITY[:1])
     w.step()
-    before = w.state.position.copy()
-    with pytest.raises(SceneError, match=r'^spawn: particles\[0\]\.mass: a static particle'):
-        w.spawn_text('{particles: [{position: [1, 0, 0], radius: 0.1, mass: .inf}]}')
-    assert len(w.state) == 1
-    np.testing.assert_array_equal(w.state.position, before)
-    w.step()                                       # and it goes on
+    w.spawn_text('{particles: [{position: [0, 0, -1], radius: 0.1, mass: .inf}]}')
+    assert len(w.state) == 2
+    w.step(60)
+    assert w.stats.collisions == 1
+    assert w.state.position[0, 2] > -0.8
+    np.testing.assert_array_equal(w.state.position[1], [0, 0, -1])
+    assert w.stats.fallback_steps == 0
 
 
 # -- exact mode: the lecture's formulas ---------------------------------------

@@ -92,8 +92,6 @@ def scenes(draw) -> dict:
     accuracy = draw(st.sampled_from(sorted(PRESETS)))
     event_mode = PRESETS[accuracy].mode == 'event'
     effects = draw(effects_subsets(dimensions, event_mode))
-    # Event mode refuses static particles under gravity (asserted in test_accuracy).
-    static_allowed = not (event_mode and 'gravity' in effects)
     coordinate = st.floats(-BOX, BOX)
     particles = []
     for _ in range(count):
@@ -107,7 +105,7 @@ def scenes(draw) -> dict:
         speed = draw(log_uniform(-1.0, np.log10(6.0 * BOX))) / (STEPS * dt)
         if draw(st.integers(0, 3)) == 0:
             speed *= draw(log_uniform(-6.0, 0.0))
-        static = static_allowed and draw(st.integers(0, 5)) == 0    # one in six is static
+        static = draw(st.integers(0, 5)) == 0    # one in six is static
         particles.append({
             'position': position.tolist(),
             'velocity': [0.0] * dimensions if static else (speed * direction).tolist(),

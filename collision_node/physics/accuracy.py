@@ -90,7 +90,6 @@ from __future__ import annotations
 from dataclasses import dataclass, fields, replace
 from typing import Any, Optional
 
-import numpy as np
 
 from .guard import parse_text
 from .validation import fail, integer, number, quote, reject_unknown_keys
@@ -207,20 +206,3 @@ def check_event_mode(accuracy: AccuracySettings, effects: Any, where: str) -> No
         fail(where, f'mode event (preset exact) cannot simulate {", ".join(unsupported)} '
                     f'exactly (it supports {", ".join(EVENT_EFFECTS)}); '
                     'pick a step preset such as accurate')
-
-
-def check_event_particles(accuracy: AccuracySettings, effects: Any, inv_mass: Any,
-                          where: str) -> None:
-    """Refuse static particles (mass .inf) under gravity in event mode.
-
-    A falling particle's path relative to a static one is a parabola, not
-    the straight line the event mode's closed-form impact times assume.
-    ``where`` prefixes the field (``'s.yaml: '``, ``'spawn: '``).
-    """
-    if accuracy.mode != 'event' or effects.gravity is None:
-        return
-    static = np.flatnonzero(np.asarray(inv_mass) == 0.0)
-    if static.size:
-        fail(f'{where}particles[{int(static[0])}].mass',
-             'a static particle (mass .inf) under gravity cannot be simulated exactly by '
-             'mode event (preset exact); pick a step preset such as accurate')

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional, Union
 
-from .accuracy import AccuracySettings, check_event_mode, check_event_particles, parse_accuracy
+from .accuracy import AccuracySettings, check_event_mode, parse_accuracy
 from .effects import Effects, check_particles_for_effects, parse_effects
 from .generate import generate_state, parse_generate
 from .particles import PARTICLE_KEYS, build_state, parse_particle
@@ -54,8 +54,6 @@ class Scene:
     def with_accuracy(self, accuracy: AccuracySettings) -> 'Scene':
         """Return the same scene under other accuracy settings (checked against it)."""
         check_event_mode(accuracy, self.effects, f'{self.source}: accuracy')
-        check_event_particles(accuracy, self.effects, self.initial.inv_mass,
-                              f'{self.source}: ')
         return Scene(self.name, self.dimensions, self.dt, self.duration, accuracy,
                      self.effects, self.initial, self.source)
 
@@ -133,7 +131,6 @@ def parse_scene(data: Any, source: str, default_name: str = 'scene') -> Scene:
     state = parse_particle_section(data.get('particles'), data.get('generate'), source,
                                    dimensions, first_id=0)
     check_particles_for_effects(state, effects, f'{source}: ')
-    check_event_particles(accuracy, effects, state.inv_mass, f'{source}: ')
     return Scene(name=name, dimensions=dimensions, dt=dt, duration=duration,
                  accuracy=accuracy, effects=effects, initial=state, source=source)
 

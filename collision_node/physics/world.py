@@ -12,7 +12,6 @@ from typing import Optional
 import numpy as np
 
 from . import energy
-from .accuracy import check_event_particles
 from .commands import check_inside_walls, check_no_overlap, rows_of
 from .effects import check_particles_for_effects
 from .impacts import ImpactLog
@@ -146,8 +145,6 @@ class World:
                              f'{len(self.state) + len(particles)}, over max_particles = '
                              f'{self.max_particles}')
         check_particles_for_effects(particles, self.scene.effects, f'{source}: ')
-        check_event_particles(self.scene.accuracy, self.scene.effects, particles.inv_mass,
-                              f'{source}: ')
         where = f'{source}: particle {{}} of the request'
         if not allow_outside:
             check_inside_walls(particles.position, particles.radius, self.scene.effects.walls,

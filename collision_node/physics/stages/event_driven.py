@@ -68,11 +68,13 @@ most ``MAX_FALLBACK_HOLD``) go straight to the step solver before event
 mode is tried again. A particle struck sideways while it rests on walls
 only (a ball rolling on a floor) keeps its supports: that impact is exact.
 
+Static particles (mass .inf) under gravity do not fall: every step under
+gravity with one gives each particle its own acceleration (0 for a static
+one), so a falling particle meets a static one at a quartic's root, and a
+particle resting on a static one is supported like one on a wall.
+
 Scenes with an effect other than particles, walls, restitution and gravity
-are refused (:func:`collision_node.physics.accuracy.check_event_mode`), and so are
-static particles (mass .inf) under gravity, whose relative motion against a
-falling particle is not a straight line
-(:func:`collision_node.physics.accuracy.check_event_particles`).
+are refused (:func:`collision_node.physics.accuracy.check_event_mode`).
 """
 
 from __future__ import annotations
@@ -83,7 +85,7 @@ import numpy as np
 
 from .. import event_kernels as ek
 from .. import resting_kernels as rk
-from ..accuracy import (AccuracySettings, check_event_mode, check_event_particles,
+from ..accuracy import (AccuracySettings, check_event_mode,
                         EVENT_FALLBACK, MIN_EVENT_BUDGET, PRESETS)
 from ..effects import Effects
 from ..step import Pipeline, Stage, StepContext
@@ -163,9 +165,6 @@ class EventDrivenStage(Stage):
     def _rebuild(self, state: ParticleState, dimensions: int, end: float) -> None:
         """Set up clocks, grid and predictions for ``state`` at ``self.time`` (step to ``end``)."""
         n = len(state)
-        # Scenes, accuracy switches and spawns are checked on entry; this guards
-        # a state handed to the stage some other way, with the same message.
-        check_event_particles(self.accuracy, self.effects, state.inv_mass, '')
         self._state = state
         self.dims = dimensions
         self.cell_size = self._choose_cell_size(state, dimensions) if n else 1.0
@@ -229,8 +228,9 @@ class EventDrivenStage(Stage):
         Sets their normal speeds to zero in the world's state, books the
         energy that takes to their contacts and keeps each particle's
         acceleration and supports for the step in ``self._supports`` (None
-        when nobody is supported). Returns False when a particle rests on
-        more than ``resting_kernels.PARTNERS`` others (the step falls back).
+        when nobody is supported and no particle is static: then every
+        particle falls with g). Returns False when a particle rests on more
+        than ``resting_kernels.PARTNERS`` others (the step falls back).
         """
         state = ctx.state
         n, dims = len(state), ctx.dimensions
@@ -246,8 +246,14 @@ class EventDrivenStage(Stage):
         rest_speed = ctx.effects.threshold(ctx.dt)
         m = rk.collect(position, velocity, inv_mass, radius, cand_i, cand_j, self.low_walls,
                        self.high_walls, dims, rest_speed, c_i, c_j, c_normal)
+        # A static particle does not fall: its own acceleration is 0.
+        any_static = bool(np.any(inv_mass == 0.0))
         if m == 0:
             self._old_partner = np.full((0, rk.PARTNERS), -1, dtype=np.int64)
+            if any_static:
+                accel, rest = ek.new_supports(n, rk.PARTNERS)
+                accel[inv_mass > 0.0] = self.gravity
+                self._supports = (accel, rest)
             return True
         info = np.zeros(rk.INFO_SIZE)
         removed = np.empty(m)
@@ -273,7 +279,7 @@ class EventDrivenStage(Stage):
         self.resting_info = info
         if status != rk.FOUND:
             return False
-        if supported.any():
+        if supported.any() or any_static:
             rest[:, ek.S_SUPPORTED], rest[:, ek.S_WALLS] = supported, walls
             rest[:, ek.S_PARTNERS:] = partner
             self._supports = (accel, rest)
