@@ -147,3 +147,25 @@ def test_exact_bench_prints_a_row_per_size(capsys):
     balanced, exact, ratio = float(cells[2]), float(cells[3]), float(cells[4])
     assert balanced > 0 and exact > 0
     assert ratio == pytest.approx(exact / balanced, abs=0.06)
+
+
+def test_resting_bench_rows_say_what_each_preset_kept(capsys):
+    """The column under `fast` and `exact`: one row each, exact at rest, no fallback."""
+    assert bench.main(['resting', '--presets', 'fast', 'exact', '--scenes', 'column']) == 0
+    table = [line for line in capsys.readouterr().out.splitlines() if line.startswith('|')]
+    assert table[0].startswith('| scene | preset | steps | ms/step | fallback steps')
+    rows = [[cell.strip() for cell in line.strip('|').split('|')] for line in table[2:]]
+    assert [row[:3] for row in rows] == [['column', 'fast', '240'], ['column', 'exact', '240']]
+    assert rows[1][4] == '0'                         # no step went to the step solver
+    assert float(rows[1][5]) < 1e-9                  # at rest
+    assert float(rows[1][6]) < 1e-9                  # overlap / r: round-off
+
+
+def test_resting_bench_drop_scene_puts_a_disc_above_a_hollow_of_the_top_row():
+    """The dropped disc is 0.3 m above touching the top row, over a hollow (x = 26 r)."""
+    from collision_node.bench.resting import RADIUS, scene
+    particles = scene('drop', 'exact')['particles']
+    assert len(particles) == 501
+    top = max(p['position'][1] for p in particles[:-1])
+    assert particles[-1]['position'][1] == pytest.approx(top + 2 * RADIUS + 0.3)
+    assert particles[-1]['position'][0] == pytest.approx(26 * RADIUS)

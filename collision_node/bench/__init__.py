@@ -26,6 +26,7 @@ SUBCOMMANDS: dict[str, str] = {
     'mixed': 'collision_node.bench.mixed',
     'exact': 'collision_node.bench.exact',
     'node-start': 'collision_node.bench.node_start',
+    'resting': 'collision_node.bench.resting',
 }
 
 
