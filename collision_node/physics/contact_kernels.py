@@ -64,7 +64,7 @@ def pair_impulse(v, inv_mass, a, b, nx, ny, nz, e, tolerance):
     return magnitude, approach, removed
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def _apply_pair(v, inv_mass, a, b, nx, ny, nz, e, approach):
     """Apply the normal impulse to a pair closing at ``approach``; return (N s, J removed)."""
     w_a, w_b = inv_mass[a], inv_mass[b]
@@ -117,7 +117,7 @@ def _share(inv_mass, a, b):
     return inv_mass[a] / (inv_mass[a] + inv_mass[b])
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def _book_pair(loss, effect, a, b, removed, share):
     """Book a pair's loss to its particles, a taking ``share`` (``_share``)."""
     loss[effect, a] += removed * share
@@ -133,7 +133,7 @@ def _book(loss, effect, p, removed):
     loss[BOOKED, p] += removed
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def _push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach):
     """Apply a normal impulse increment ``magnitude`` (either sign) to pair (a, b).
 
@@ -154,7 +154,7 @@ def _push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach):
     return -(magnitude * 0.5 * (before + after))
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def _friction_acc(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_total, mu, planar,
                   f_a, f_b, acc_t, row):
     """Coulomb friction with spin on an accumulated tangential impulse (``b`` < 0: a wall).
@@ -199,7 +199,7 @@ def _friction_acc(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_total, mu, 
     return math.sqrt(_dot(jx, jy, jz, jx, jy, jz)), removed
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def _slip(v, ang, inv_mass, radius, a, b, nx, ny, nz, planar):
     """Return the slip velocity of the contact points (tangent to N) and w_a + w_b.
 
@@ -228,7 +228,7 @@ def _slip(v, ang, inv_mass, radius, a, b, nx, ny, nz, planar):
     return tx, ty, tz, w_sum
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def _apply_tangential(v, ang, inv_mass, a, b, nx, ny, nz, jx, jy, jz, f_a, f_b):
     """Apply tangential impulse J on ``a`` (-J on ``b`` if b >= 0), with its spin change."""
     cx, cy, cz = ny * jz - nz * jy, nz * jx - nx * jz, nx * jy - ny * jx
