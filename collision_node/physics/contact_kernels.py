@@ -801,6 +801,15 @@ def find_wall_contacts(position, radius, dynamic, p_axis, p_plane, p_inward, p_u
 
 
 @njit(cache=True)
+def _ascending(keys):
+    """Say whether ``keys`` never decrease (then their stable order is the identity)."""
+    for c in range(1, keys.size):
+        if keys[c] < keys[c - 1]:
+            return False
+    return True
+
+
+@njit(cache=True)
 def _stable_order(keys):
     """Return the stable ascending order of ``keys`` (numpy's argsort kind='stable')."""
     return np.argsort(keys, kind='mergesort')
@@ -869,15 +878,30 @@ def solve_step(v, ang, position, inv_mass, radius, ids, pi, pj, normal, rest_in,
         if ids[p] > max_id:
             keyed = False
     stride = max_id + 1
-    if keyed:
-        for c in range(m if c_key.size else 0):
+    if keyed and c_key.size:
+        keys = np.empty(m, dtype=np.int64)
+        for c in range(m):
             a, b = ids[pi[c]], ids[pj[c]]
-            row = _find_key(c_key, min(a, b) * stride + max(a, b))
-            if row >= 0:
+            keys[c] = min(a, b) * stride + max(a, b)
+        # The broadphase's pairs come sorted by row, and rows by id unless ids
+        # were reordered: then one merge walk finds every key (the first row
+        # holding it, as the binary search would).
+        merge = _ascending(keys)
+        row = 0
+        for c in range(m):
+            a, b = ids[pi[c]], ids[pj[c]]
+            if merge:
+                while row < c_key.size and c_key[row] < keys[c]:
+                    row += 1
+                found = row if row < c_key.size and c_key[row] == keys[c] else -1
+            else:
+                found = _find_key(c_key, keys[c])
+            if found >= 0:
                 sign = -1.0 if a > b else 1.0
-                acc[c] = c_normal[row]
+                acc[c] = c_normal[found]
                 for d in range(3):
-                    acc_t[c, d] = c_tangential[row, d] * sign
+                    acc_t[c, d] = c_tangential[found, d] * sign
+    if keyed:
         for c in range(k if cw_key.size else 0):
             row = _find_key(cw_key, ids[w_index[c]] * 8 + w_axis[c] * 2
                             + (1 if w_inward[c] > 0.0 else 0))
@@ -914,7 +938,7 @@ def solve_step(v, ang, position, inv_mass, radius, ids, pi, pj, normal, rest_in,
             a, b = ids[pi[c]], ids[pj[c]]
             keys[kept], rows[kept] = min(a, b) * stride + max(a, b), c
             kept += 1
-    sorted_rows = _stable_order(keys)
+    sorted_rows = np.arange(kept) if _ascending(keys) else _stable_order(keys)
     new_key = np.empty(kept, dtype=np.int64)
     new_normal, new_tangential = np.empty(kept), np.empty((kept, 3))
     for s in range(kept):
