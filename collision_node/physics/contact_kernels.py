@@ -372,22 +372,41 @@ def _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w
 
 
 @njit(cache=True)
-def _shock_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order, threshold,
-                pushed, loss, totals):
+def _shock_rows(pi, pj, normal, i_lower, shock_order):
+    """Return each pair's (lower, upper, N lower -> upper) in ``shock_order``.
+
+    Gathered once per solve for the up to 2 * SHOCK_PASSES passes that walk
+    them: rows in the order they are visited, and no branch on which side
+    is the lower one (the same values, N negated exactly).
+    """
+    size = shock_order.size
+    low, up, out = np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64), \
+        np.empty((size, 3))
+    for s in range(size):
+        k = shock_order[s]
+        if i_lower[k]:
+            low[s], up[s] = pi[k], pj[k]
+            out[s, 0], out[s, 1], out[s, 2] = -normal[k, 0], -normal[k, 1], -normal[k, 2]
+        else:
+            low[s], up[s] = pj[k], pi[k]
+            out[s, 0], out[s, 1], out[s, 2] = normal[k, 0], normal[k, 1], normal[k, 2]
+    return low, up, out
+
+
+@njit(cache=True)
+def _shock_pass(v, inv_mass, dynamic, s_low, s_up, s_out, shock_order, threshold, pushed,
+                loss, totals):
     """One shock-propagation pass in ``shock_order`` (ground up); return whether it pushed.
 
     The law of ``SequentialImpulseStage._shock_pass``: the upper particle's
     approach along the line of action is stopped against the lower one
-    (never lifted), the work of the impulse booked as 'restitution'.
+    (never lifted), the work of the impulse booked as 'restitution'. The
+    pairs come as ``_shock_rows`` gathers them.
     """
     any_push = False
-    for k in shock_order:
-        if i_lower[k]:
-            low, up = pi[k], pj[k]
-            nx, ny, nz = -normal[k, 0], -normal[k, 1], -normal[k, 2]
-        else:
-            low, up = pj[k], pi[k]
-            nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
+    for s in range(shock_order.size):
+        k, low, up = shock_order[s], s_low[s], s_up[s]
+        nx, ny, nz = s_out[s, 0], s_out[s, 1], s_out[s, 2]
         u_upper = _dot(v[up, 0], v[up, 1], v[up, 2], nx, ny, nz)
         u_lower = _dot(v[low, 0], v[low, 1], v[low, 2], nx, ny, nz)
         target = min(u_lower, 0.0)
@@ -434,7 +453,7 @@ def _take_back_pairs(v, inv_mass, pi, pj, normal, order, acc, share, summed_norm
 
 
 @njit(cache=True)
-def _take_back_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order, acc, pushed,
+def _take_back_pass(v, inv_mass, dynamic, s_low, s_up, s_out, shock_order, acc, pushed,
                     loss, totals):
     """Take back resting impulse the sweeps left pushing contacts open; return whether any.
 
@@ -448,15 +467,12 @@ def _take_back_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order, 
     booked as 'restitution'.
     """
     any_taken = False
-    for k in shock_order:
+    for s in range(shock_order.size):
+        k = shock_order[s]
         if not acc[k] > 0.0:
             continue
-        if i_lower[k]:
-            low, up = pi[k], pj[k]
-            nx, ny, nz = -normal[k, 0], -normal[k, 1], -normal[k, 2]
-        else:
-            low, up = pj[k], pi[k]
-            nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
+        low, up = s_low[s], s_up[s]
+        nx, ny, nz = s_out[s, 0], s_out[s, 1], s_out[s, 2]
         if not dynamic[up]:
             continue
         u_upper = _dot(v[up, 0], v[up, 1], v[up, 2], nx, ny, nz)
@@ -738,12 +754,13 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                      w_mu, w_impact, struck, use_threshold, threshold, 0.0, strike, friction,
                      planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, False,
                      spin, accumulate, w_acc, w_acc_impact, w_acc_t, warm_dv, warmed)
+        s_low, s_up, s_out = _shock_rows(pi, pj, normal, i_lower, shock_order)
         for _ in range(shock_passes):
             taken = False
             if accumulate:
-                taken = _take_back_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower,
+                taken = _take_back_pass(v, inv_mass, dynamic, s_low, s_up, s_out,
                                         shock_order, acc, summed_normal, loss, totals)
-            pushed = _shock_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order,
+            pushed = _shock_pass(v, inv_mass, dynamic, s_low, s_up, s_out, shock_order,
                                  threshold, summed_normal, loss, totals)
             _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward,
                          w_rest, w_mu, w_impact, struck, use_threshold, threshold, 0.0,
