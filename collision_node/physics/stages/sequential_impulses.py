@@ -514,8 +514,8 @@ class SequentialImpulseStage(Stage):
             record_pairs(ctx.impacts, ctx.time, state.position, state.radius, i[pushed],
                          j[pushed], normal[pushed], summed_normal[pushed],
                          summed_tangential[pushed], np.maximum(approach0[pushed], 0.0))
-            for (axis, plane, inward), lo, hi in zip(self.walls.planes(ctx.dimensions),
-                                                     w_start[:-1], w_start[1:]):
+            planes = [] if self.walls is None else self.walls.planes(ctx.dimensions)
+            for (axis, plane, inward), lo, hi in zip(planes, w_start[:-1], w_start[1:]):
                 if hi == lo:
                     continue
                 wall = WallContacts(axis, plane, inward, w_index[lo:hi], None, None,
