@@ -7,7 +7,9 @@ one contact at a time, so a solve can visit contacts serially in any order
 without a batch per colour. ``solve_contacts`` runs a whole contact solve
 of ``stages.sequential_impulses`` (sweeps over pairs and wall planes,
 restitution threshold with its 'struck' rule, Coulomb friction with spin,
-shock passes) inside one compiled call; ``test/test_contact_kernels.py``
+shock passes) inside one compiled call, and ``solve_step`` wraps it with the
+stage's set-up (wall contacts, orders, the warm start's contact cache), so a
+step's solve is one call from Python; ``test/test_contact_kernels.py``
 runs the vectorised law and these kernels on the same contacts and asserts
 identical velocities and bookings.
 

@@ -38,8 +38,9 @@ persists and is not a new impact (warm starting), so a resting pile needs
 few sweeps. Impact impulses are the law's, unchanged and never cached.
 
 Two backends apply the same law. ``kernel`` (the default) runs the whole
-solve in one compiled call (``contact_kernels.solve_contacts``) that
-visits contacts one at a time in the broadphase's sorted pair order, and
+solve, its set-up included (wall contacts, orders, the warm start's cache
+look-up and store), in one compiled call (``contact_kernels.solve_step``)
+that visits contacts one at a time in the broadphase's sorted pair order, and
 the shock passes' pairs from the ground up: the order Gauss-Seidel walks a
 chain such as Newton's cradle from its low end in one sweep (the chain
 batches this replaced reproduced exactly that order, one batch per link).
