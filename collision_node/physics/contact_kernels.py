@@ -7,7 +7,9 @@ one contact at a time, so a solve can visit contacts serially in any order
 without a batch per colour. ``solve_contacts`` runs a whole contact solve
 of ``stages.sequential_impulses`` (sweeps over pairs and wall planes,
 restitution threshold with its 'struck' rule, Coulomb friction with spin,
-shock passes) inside one compiled call; ``test/test_contact_kernels.py``
+shock passes) inside one compiled call, and ``solve_step`` wraps it with the
+stage's set-up (wall contacts, orders, the warm start's contact cache), so a
+step's solve is one call from Python; ``test/test_contact_kernels.py``
 runs the vectorised law and these kernels on the same contacts and asserts
 identical velocities and bookings.
 
@@ -64,7 +66,7 @@ def pair_impulse(v, inv_mass, a, b, nx, ny, nz, e, tolerance):
     return magnitude, approach, removed
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def _apply_pair(v, inv_mass, a, b, nx, ny, nz, e, approach):
     """Apply the normal impulse to a pair closing at ``approach``; return (N s, J removed)."""
     w_a, w_b = inv_mass[a], inv_mass[b]
@@ -117,7 +119,7 @@ def _share(inv_mass, a, b):
     return inv_mass[a] / (inv_mass[a] + inv_mass[b])
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def _book_pair(loss, effect, a, b, removed, share):
     """Book a pair's loss to its particles, a taking ``share`` (``_share``)."""
     loss[effect, a] += removed * share
@@ -133,7 +135,7 @@ def _book(loss, effect, p, removed):
     loss[BOOKED, p] += removed
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def _push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach):
     """Apply a normal impulse increment ``magnitude`` (either sign) to pair (a, b).
 
@@ -154,7 +156,7 @@ def _push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach):
     return -(magnitude * 0.5 * (before + after))
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def _friction_acc(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_total, mu, planar,
                   f_a, f_b, acc_t, row):
     """Coulomb friction with spin on an accumulated tangential impulse (``b`` < 0: a wall).
@@ -199,7 +201,7 @@ def _friction_acc(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_total, mu, 
     return math.sqrt(_dot(jx, jy, jz, jx, jy, jz)), removed
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def _slip(v, ang, inv_mass, radius, a, b, nx, ny, nz, planar):
     """Return the slip velocity of the contact points (tangent to N) and w_a + w_b.
 
@@ -228,7 +230,7 @@ def _slip(v, ang, inv_mass, radius, a, b, nx, ny, nz, planar):
     return tx, ty, tz, w_sum
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def _apply_tangential(v, ang, inv_mass, a, b, nx, ny, nz, jx, jy, jz, f_a, f_b):
     """Apply tangential impulse J on ``a`` (-J on ``b`` if b >= 0), with its spin change."""
     cx, cy, cz = ny * jz - nz * jy, nz * jx - nx * jz, nx * jy - ny * jx
@@ -372,22 +374,41 @@ def _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward, w
 
 
 @njit(cache=True)
-def _shock_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order, threshold,
-                pushed, loss, totals):
+def _shock_rows(pi, pj, normal, i_lower, shock_order):
+    """Return each pair's (lower, upper, N lower -> upper) in ``shock_order``.
+
+    Gathered once per solve for the up to 2 * SHOCK_PASSES passes that walk
+    them: rows in the order they are visited, and no branch on which side
+    is the lower one (the same values, N negated exactly).
+    """
+    size = shock_order.size
+    low, up, out = np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64), \
+        np.empty((size, 3))
+    for s in range(size):
+        k = shock_order[s]
+        if i_lower[k]:
+            low[s], up[s] = pi[k], pj[k]
+            out[s, 0], out[s, 1], out[s, 2] = -normal[k, 0], -normal[k, 1], -normal[k, 2]
+        else:
+            low[s], up[s] = pj[k], pi[k]
+            out[s, 0], out[s, 1], out[s, 2] = normal[k, 0], normal[k, 1], normal[k, 2]
+    return low, up, out
+
+
+@njit(cache=True)
+def _shock_pass(v, inv_mass, dynamic, s_low, s_up, s_out, shock_order, threshold, pushed,
+                loss, totals):
     """One shock-propagation pass in ``shock_order`` (ground up); return whether it pushed.
 
     The law of ``SequentialImpulseStage._shock_pass``: the upper particle's
     approach along the line of action is stopped against the lower one
-    (never lifted), the work of the impulse booked as 'restitution'.
+    (never lifted), the work of the impulse booked as 'restitution'. The
+    pairs come as ``_shock_rows`` gathers them.
     """
     any_push = False
-    for k in shock_order:
-        if i_lower[k]:
-            low, up = pi[k], pj[k]
-            nx, ny, nz = -normal[k, 0], -normal[k, 1], -normal[k, 2]
-        else:
-            low, up = pj[k], pi[k]
-            nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
+    for s in range(shock_order.size):
+        k, low, up = shock_order[s], s_low[s], s_up[s]
+        nx, ny, nz = s_out[s, 0], s_out[s, 1], s_out[s, 2]
         u_upper = _dot(v[up, 0], v[up, 1], v[up, 2], nx, ny, nz)
         u_lower = _dot(v[low, 0], v[low, 1], v[low, 2], nx, ny, nz)
         target = min(u_lower, 0.0)
@@ -434,7 +455,7 @@ def _take_back_pairs(v, inv_mass, pi, pj, normal, order, acc, share, summed_norm
 
 
 @njit(cache=True)
-def _take_back_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order, acc, pushed,
+def _take_back_pass(v, inv_mass, dynamic, s_low, s_up, s_out, shock_order, acc, pushed,
                     loss, totals):
     """Take back resting impulse the sweeps left pushing contacts open; return whether any.
 
@@ -448,15 +469,12 @@ def _take_back_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order, 
     booked as 'restitution'.
     """
     any_taken = False
-    for k in shock_order:
+    for s in range(shock_order.size):
+        k = shock_order[s]
         if not acc[k] > 0.0:
             continue
-        if i_lower[k]:
-            low, up = pi[k], pj[k]
-            nx, ny, nz = -normal[k, 0], -normal[k, 1], -normal[k, 2]
-        else:
-            low, up = pj[k], pi[k]
-            nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
+        low, up = s_low[s], s_up[s]
+        nx, ny, nz = s_out[s, 0], s_out[s, 1], s_out[s, 2]
         if not dynamic[up]:
             continue
         u_upper = _dot(v[up, 0], v[up, 1], v[up, 2], nx, ny, nz)
@@ -738,12 +756,13 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                      w_mu, w_impact, struck, use_threshold, threshold, 0.0, strike, friction,
                      planar, w_hit, w_normal, w_tangential, loss, totals, w_approach, False,
                      spin, accumulate, w_acc, w_acc_impact, w_acc_t, warm_dv, warmed)
+        s_low, s_up, s_out = _shock_rows(pi, pj, normal, i_lower, shock_order)
         for _ in range(shock_passes):
             taken = False
             if accumulate:
-                taken = _take_back_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower,
+                taken = _take_back_pass(v, inv_mass, dynamic, s_low, s_up, s_out,
                                         shock_order, acc, summed_normal, loss, totals)
-            pushed = _shock_pass(v, inv_mass, dynamic, pi, pj, normal, i_lower, shock_order,
+            pushed = _shock_pass(v, inv_mass, dynamic, s_low, s_up, s_out, shock_order,
                                  threshold, summed_normal, loss, totals)
             _solve_walls(v, ang, inv_mass, radius, w_start, w_index, w_axis, w_inward,
                          w_rest, w_mu, w_impact, struck, use_threshold, threshold, 0.0,
@@ -753,6 +772,225 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
             if not pushed and not taken:
                 break
     return sweeps
+
+
+@njit(cache=True)
+def _find_key(table, key):
+    """Return the first row of sorted ``table`` holding ``key``, or -1 (binary search)."""
+    lo, hi = 0, table.size
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if table[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    if lo < table.size and table[lo] == key:
+        return lo
+    return -1
+
+
+@njit(cache=True)
+def find_wall_contacts(position, radius, dynamic, p_axis, p_plane, p_inward, p_ulps, slop):
+    """Return (start per plane, particle, axis, inward) of the particles touching each plane.
+
+    As ``SequentialImpulseStage._wall_contacts``: a dynamic particle whose gap
+    to the plane is at most ``slop`` times its radius plus the plane's
+    ``p_ulps`` (WALL_ULPS spacings at its coordinate), plane after plane, in
+    particle order. ``start`` has one entry per plane and one more (a plane
+    nothing touches is an empty run).
+    """
+    n, planes = position.shape[0], p_axis.size
+    start = np.zeros(planes + 1, dtype=np.int64)
+    index = np.empty(n * planes, dtype=np.int64)
+    k = 0
+    for q in range(planes):
+        axis, plane, inward = p_axis[q], p_plane[q], p_inward[q]
+        for p in range(n):
+            gap = inward * (position[p, axis] - plane) - radius[p]
+            if dynamic[p] and gap <= slop * radius[p] + p_ulps[q]:
+                index[k] = p
+                k += 1
+        start[q + 1] = k
+    axes = np.empty(k, dtype=np.int64)
+    inwards = np.empty(k)
+    for q in range(planes):
+        for c in range(start[q], start[q + 1]):
+            axes[c], inwards[c] = p_axis[q], p_inward[q]
+    return start, index[:k].copy(), axes, inwards
+
+
+@njit(cache=True)
+def _ascending(keys):
+    """Say whether ``keys`` never decrease (then their stable order is the identity)."""
+    for c in range(1, keys.size):
+        if keys[c] < keys[c - 1]:
+            return False
+    return True
+
+
+@njit(cache=True)
+def _stable_order(keys):
+    """Return the stable ascending order of ``keys`` (numpy's argsort kind='stable')."""
+    return np.argsort(keys, kind='mergesort')
+
+
+@njit(cache=True)
+def solve_step(v, ang, position, inv_mass, radius, ids, pi, pj, normal, rest_in, mu_in,
+               colours, order_in, p_axis, p_plane, p_inward, p_ulps, slop, w_rest_in,
+               w_mu_in, use_threshold, threshold, tolerance, strike, iterations, friction,
+               planar, shock, height, shock_in, shock_passes, booked, accumulate, max_id,
+               c_key, c_normal, c_tangential, cw_key, cw_normal, cw_tangential):
+    """Run a whole step's contact solve in one call: set-up, ``solve_contacts``, cache.
+
+    The set-up ``SequentialImpulseStage`` did in numpy, with the same values:
+    the wall contacts (``find_wall_contacts``), coefficients broadcast from a
+    single value (``rest_in``, ``mu_in`` per pair; ``w_rest_in``, ``w_mu_in``
+    per particle), the visit order (``order_in`` with ``colours``, else the
+    pairs in order), with ``shock`` the shock passes' order (``shock_in``
+    with ``colours``, else the pairs by the ``height`` of their lower
+    particle, stable), the
+    warm start looked up in the contact cache (sorted keys: ``c_key`` of
+    pairs, lower id * (max_id + 1) + higher id, tangential impulses on the
+    lower id; ``cw_key`` of wall contacts, id * 8 + axis * 2 + (inward > 0)),
+    and the cache of this solve, sorted the same way. ``booked`` (the step's
+    losses per particle so far, or empty) is updated in place.
+
+    Returns (sweeps, totals per effect, hit, summed normal and tangential
+    impulse per pair, the wall contacts' start per plane, particle, axis,
+    inward, hit, normal and tangential impulse and first approach speed,
+    then the new cache: pair keys, normal, tangential, wall keys, normal,
+    tangential).
+    """
+    n, m = v.shape[0], pi.size
+    dynamic = np.empty(n, dtype=np.bool_)
+    for p in range(n):
+        dynamic[p] = inv_mass[p] > 0.0
+    w_start, w_index, w_axis, w_inward = find_wall_contacts(
+        position, radius, dynamic, p_axis, p_plane, p_inward, p_ulps, slop)
+    k = w_index.size
+    rest = np.empty(m)
+    mu = np.empty(m)
+    for c in range(m):
+        rest[c] = rest_in[c if rest_in.size > 1 else 0]
+        mu[c] = mu_in[c if mu_in.size > 1 else 0] if friction else 0.0
+    w_rest = np.empty(k)
+    w_mu = np.zeros(k)
+    for c in range(k):
+        p = w_index[c]
+        w_rest[c] = w_rest_in[p if w_rest_in.size > 1 else 0]
+        if friction:
+            w_mu[c] = w_mu_in[p if w_mu_in.size > 1 else 0]
+    order = order_in if colours else np.arange(m)
+    shock_order = np.zeros(0, dtype=np.int64)
+    i_lower = np.zeros(m, dtype=np.bool_)
+    if shock and m:
+        lower_height = np.empty(m)
+        for c in range(m):
+            i_lower[c] = height[pi[c]] <= height[pj[c]]
+            lower_height[c] = height[pi[c]] if i_lower[c] else height[pj[c]]
+        shock_order = shock_in if colours else _stable_order(lower_height)
+    acc, acc_t = np.zeros(m), np.zeros((m, 3))
+    w_acc, w_acc_t = np.zeros(k), np.zeros((k, 3))
+    # Ids past max_id would overflow the keys: such a world keeps no cache.
+    keyed = accumulate
+    for p in range(n):
+        if ids[p] > max_id:
+            keyed = False
+    stride = max_id + 1
+    if keyed and c_key.size:
+        keys = np.empty(m, dtype=np.int64)
+        for c in range(m):
+            a, b = ids[pi[c]], ids[pj[c]]
+            keys[c] = min(a, b) * stride + max(a, b)
+        # The broadphase's pairs come sorted by row, and rows by id unless ids
+        # were reordered: then one merge walk finds every key (the first row
+        # holding it, as the binary search would).
+        merge = _ascending(keys)
+        row = 0
+        for c in range(m):
+            a, b = ids[pi[c]], ids[pj[c]]
+            if merge:
+                while row < c_key.size and c_key[row] < keys[c]:
+                    row += 1
+                found = row if row < c_key.size and c_key[row] == keys[c] else -1
+            else:
+                found = _find_key(c_key, keys[c])
+            if found >= 0:
+                sign = -1.0 if a > b else 1.0
+                acc[c] = c_normal[found]
+                for d in range(3):
+                    acc_t[c, d] = c_tangential[found, d] * sign
+    if keyed:
+        for c in range(k if cw_key.size else 0):
+            row = _find_key(cw_key, ids[w_index[c]] * 8 + w_axis[c] * 2
+                            + (1 if w_inward[c] > 0.0 else 0))
+            if row >= 0:
+                w_acc[c] = cw_normal[row]
+                for d in range(3):
+                    w_acc_t[c, d] = cw_tangential[row, d]
+    hit = np.zeros(m, dtype=np.bool_)
+    summed_normal, summed_tangential = np.zeros(m), np.zeros(m)
+    w_hit = np.zeros(k, dtype=np.bool_)
+    w_normal, w_tangential, w_approach = np.zeros(k), np.zeros(k), np.zeros(k)
+    loss = np.zeros((len(EFFECTS) + 1, n))
+    for p in range(booked.size):
+        loss[BOOKED, p] = booked[p]
+    totals = np.zeros(len(EFFECTS))
+    sweeps = solve_contacts(
+        v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, order, w_start, w_index,
+        w_axis, w_inward, w_rest, w_mu, use_threshold, threshold, tolerance, strike,
+        iterations, friction, planar, shock_order, i_lower, shock_passes, hit, summed_normal,
+        summed_tangential, w_hit, w_normal, w_tangential, w_approach, loss, totals,
+        accumulate, acc, acc_t, w_acc, w_acc_t)
+    for p in range(booked.size):
+        booked[p] = loss[BOOKED, p]
+    # This solve's cache: contacts holding resting impulse, sorted by key.
+    kept = 0
+    for c in range(m):
+        if keyed and acc[c] > 0.0:
+            kept += 1
+    keys = np.empty(kept, dtype=np.int64)
+    rows = np.empty(kept, dtype=np.int64)
+    kept = 0
+    for c in range(m):
+        if keyed and acc[c] > 0.0:
+            a, b = ids[pi[c]], ids[pj[c]]
+            keys[kept], rows[kept] = min(a, b) * stride + max(a, b), c
+            kept += 1
+    sorted_rows = np.arange(kept) if _ascending(keys) else _stable_order(keys)
+    new_key = np.empty(kept, dtype=np.int64)
+    new_normal, new_tangential = np.empty(kept), np.empty((kept, 3))
+    for s in range(kept):
+        c = rows[sorted_rows[s]]
+        new_key[s] = keys[sorted_rows[s]]
+        new_normal[s] = acc[c]
+        sign = -1.0 if ids[pi[c]] > ids[pj[c]] else 1.0
+        for d in range(3):
+            new_tangential[s, d] = acc_t[c, d] * sign
+    kept = 0
+    for c in range(k):
+        if keyed and w_acc[c] > 0.0:
+            kept += 1
+    keys = np.empty(kept, dtype=np.int64)
+    rows = np.empty(kept, dtype=np.int64)
+    kept = 0
+    for c in range(k):
+        if keyed and w_acc[c] > 0.0:
+            keys[kept] = ids[w_index[c]] * 8 + w_axis[c] * 2 + (1 if w_inward[c] > 0.0 else 0)
+            rows[kept] = c
+            kept += 1
+    sorted_rows = _stable_order(keys)
+    new_w_key = np.empty(kept, dtype=np.int64)
+    new_w_normal, new_w_tangential = np.empty(kept), np.empty((kept, 3))
+    for s in range(kept):
+        c = rows[sorted_rows[s]]
+        new_w_key[s] = keys[sorted_rows[s]]
+        new_w_normal[s] = w_acc[c]
+        for d in range(3):
+            new_w_tangential[s, d] = w_acc_t[c, d]
+    return (sweeps, totals, hit, summed_normal, summed_tangential, w_start, w_index, w_axis,
+            w_inward, w_hit, w_normal, w_tangential, w_approach, new_key, new_normal,
+            new_tangential, new_w_key, new_w_normal, new_w_tangential)
 
 
 @njit(cache=True)
@@ -1010,6 +1248,16 @@ def warm_up() -> None:
                    np.zeros(1), np.zeros(1), np.zeros(1), np.zeros((4, 2)), np.zeros(3),
                    True, np.ones(1), np.ones((1, 3)), np.ones(1), np.ones((1, 3)))
     greedy_colors(pi, pj, dynamic, 32)
+    # The whole step's solve: a floor under the pair, both warm-started from a cache.
+    position = np.array([[0.0, 1.0, 0.0], [1.9, 1.0, 0.0]])
+    ids = np.array([0, 1], dtype=np.int64)
+    key = np.array([1], dtype=np.int64)
+    floor = np.zeros(1, dtype=np.int64)
+    solve_step(v, ang, position, inv_mass, radius, ids, pi, pj, normal, one, one, False,
+               np.zeros(0, dtype=np.int64), floor, np.zeros(1), one, np.zeros(1), 1e-9, one,
+               one, True, 0.1, 1e-4, 10.0, 4, True, True, True, np.array([1.0, 1.0]),
+               np.zeros(0, dtype=np.int64), 2, np.zeros(2), True, 2 ** 31 - 1, key, one,
+               np.ones((1, 3)), np.array([3], dtype=np.int64), one, np.ones((1, 3)))
     # Narrowphase and separation (a pair 1.9 m apart with radii 1 m overlaps).
     position = np.array([[0.0, 0.0, 0.0], [1.9, 0.0, 0.0]])
     out_i, out_j = np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64)
@@ -1027,4 +1275,5 @@ def warm_up() -> None:
 def kernels() -> list:
     """Return the compiled kernels of this module (for ``kernels.prepare``)."""
     from .coloring import greedy_colors
-    return [solve_contacts, greedy_colors, find_overlaps, project_overlaps, pay_for_lift]
+    return [solve_contacts, solve_step, greedy_colors, find_overlaps, project_overlaps,
+            pay_for_lift]

@@ -38,8 +38,9 @@ persists and is not a new impact (warm starting), so a resting pile needs
 few sweeps. Impact impulses are the law's, unchanged and never cached.
 
 Two backends apply the same law. ``kernel`` (the default) runs the whole
-solve in one compiled call (``contact_kernels.solve_contacts``) that
-visits contacts one at a time in the broadphase's sorted pair order, and
+solve, its set-up included (wall contacts, orders, the warm start's cache
+look-up and store), in one compiled call (``contact_kernels.solve_step``)
+that visits contacts one at a time in the broadphase's sorted pair order, and
 the shock passes' pairs from the ground up: the order Gauss-Seidel walks a
 chain such as Newton's cradle from its low end in one sweep (the chain
 batches this replaced reproduced exactly that order, one batch per link).
@@ -57,7 +58,7 @@ from typing import Optional
 import numpy as np
 
 from .. import coloring
-from ..contact_kernels import BOOKED, EFFECTS, FRICTION, RESTITUTION, WALLS, solve_contacts
+from ..contact_kernels import FRICTION, RESTITUTION, solve_step, WALLS
 from ..contact_law import (apply_impulses, apply_pair_friction, apply_pair_impulses,
                            apply_wall_friction, apply_wall_impulses, pair_coefficient,
                            record_pairs, record_walls, wall_coefficient)
@@ -96,6 +97,22 @@ SHOCK_PASSES = 8
 # of the coordinate itself: 1e-9 of a plane at x = 1e9 m was a slop of 1 m.
 WALL_SLOP = 1.0e-9
 WALL_ULPS = 4.0
+# Empty and one-value arrays handed to the kernel where a scene has no such data.
+_NO_ROWS = np.zeros(0, dtype=np.int64)
+_NO_VALUES = np.zeros(0)
+_ONE_ZERO = np.zeros(1)
+
+
+def _per_pair(value) -> np.ndarray:
+    """Return a pair coefficient as the kernel takes it: one value, or one per pair."""
+    return np.ascontiguousarray(np.atleast_1d(np.asarray(value, dtype=float)))
+
+
+def _per_particle(own: Optional[np.ndarray], n: int, default: float) -> np.ndarray:
+    """Return a wall coefficient as the kernel takes it: one value, or one per particle."""
+    if own is None:
+        return np.array([float(default)])
+    return np.ascontiguousarray(wall_coefficient(own, np.arange(n), default), dtype=float)
 
 
 def solve_order(i: np.ndarray, j: np.ndarray, dynamic: np.ndarray) -> list[np.ndarray]:
@@ -193,10 +210,21 @@ class ContactCache:
     def clear(self) -> None:
         """Forget every contact."""
         none = np.zeros(0, dtype=np.int64)
-        self.lo, self.hi = none, none
-        self.normal, self.tangential = np.zeros(0), np.zeros((0, 3))
-        self.wall_key = none
-        self.wall_normal, self.wall_tangential = np.zeros(0), np.zeros((0, 3))
+        self.adopt(none, np.zeros(0), np.zeros((0, 3)), none, np.zeros(0), np.zeros((0, 3)))
+
+    def adopt(self, key: np.ndarray, normal: np.ndarray, tangential: np.ndarray,
+              wall_key: np.ndarray, wall_normal: np.ndarray,
+              wall_tangential: np.ndarray) -> None:
+        """Hold the contacts a compiled solve kept (``contact_kernels.solve_step``).
+
+        Pair keys (``_pair_keys``) and wall keys (id * 8 + plane code) come
+        sorted ascending, each with its normal and tangential impulse.
+        """
+        self.key, self.normal, self.tangential = key, normal, tangential
+        stride = self.MAX_ID + 1
+        self.lo, self.hi = key // stride, key % stride
+        self.wall_key, self.wall_normal, self.wall_tangential = (wall_key, wall_normal,
+                                                                 wall_tangential)
 
     def __len__(self) -> int:
         """Return the number of contacts held (pairs and wall contacts)."""
@@ -241,12 +269,14 @@ class ContactCache:
             return
         keep = acc > 0.0
         a, b = ids[i[keep]], ids[j[keep]]
-        self.lo, self.hi = np.minimum(a, b), np.maximum(a, b)
-        self.normal = acc[keep]
-        self.tangential = acc_t[keep] * np.where(a > b, -1.0, 1.0)[:, None]
-        keep = w_acc > 0.0
-        self.wall_key = ids[w_index[keep]] * 8 + w_code[keep]
-        self.wall_normal, self.wall_tangential = w_acc[keep], w_acc_t[keep]
+        key = self._pair_keys(np.minimum(a, b), np.maximum(a, b))
+        tangential = acc_t[keep] * np.where(a > b, -1.0, 1.0)[:, None]
+        wall_keep = w_acc > 0.0
+        wall_key = ids[w_index[wall_keep]] * 8 + w_code[wall_keep]
+        # Sorted by key, as the compiled solve keeps them.
+        order, wall_order = np.argsort(key, kind='stable'), np.argsort(wall_key, kind='stable')
+        self.adopt(key[order], acc[keep][order], tangential[order], wall_key[wall_order],
+                   w_acc[wall_keep][wall_order], w_acc_t[wall_keep][wall_order])
 
 
 def _find(table: np.ndarray, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -288,6 +318,8 @@ class SequentialImpulseStage(Stage):
         # where contacts persist (kernel backend, under a restitution threshold).
         self.warm_start = True
         self.cache = ContactCache()
+        # The wall planes as the kernel takes them, built on first use.
+        self._plane_arrays: Optional[tuple] = None
         # Sweeps run, summed over the solves, and in the last solve (kernel).
         self.sweeps = self.solves = self.last_sweeps = 0
 
@@ -405,7 +437,13 @@ class SequentialImpulseStage(Stage):
 
     def _run_kernel(self, ctx: StepContext, restitution, mu, threshold: float,
                     tolerance: float, planar: bool, shock: bool) -> None:
-        """Run the same solve in one compiled call (``contact_kernels.solve_contacts``)."""
+        """Run the same solve in one compiled call (``contact_kernels.solve_step``).
+
+        The kernel also does the set-up: the wall contacts, the visit and shock
+        orders and the warm start's cache look-up and store, with the values
+        the numpy set-up (``_wall_contacts``, ``_shock_order``,
+        ``ContactCache``) gives.
+        """
         state = ctx.state
         contacts = ctx.contacts if ctx.contacts is not None else Contacts.empty()
         i = np.ascontiguousarray(contacts.i, dtype=np.int64)
@@ -413,69 +451,56 @@ class SequentialImpulseStage(Stage):
         normal = np.ascontiguousarray(contacts.normal, dtype=float)
         m, n = i.size, len(state)
         record = ctx.impacts is not None
-        walls = self._wall_contacts(ctx, threshold, record)
         # The kernel works on contiguous float arrays; write back if copies were made.
         velocity = np.ascontiguousarray(state.velocity, dtype=float)
         spin = state.angular_velocity
         # Without spin (no friction) the kernel gets a scratch array it never reads.
         angular = (np.zeros((n, 3)) if spin is None
                    else np.ascontiguousarray(spin, dtype=float))
-        rest = np.broadcast_to(np.asarray(restitution, dtype=float), (m,)).copy()
         friction = mu is not None
-        mu_k = np.broadcast_to(np.asarray(mu if friction else 0.0, dtype=float), (m,)).copy()
-        order = self._visit_order(i, j, state.dynamic)
-        shock_order = np.zeros(0, dtype=np.int64)
-        i_lower = np.zeros(m, dtype=bool)
+        planes = self._planes(ctx.dimensions)
+        colours = self.visit == 'colours'
+        order = shock_order = _NO_ROWS
+        if colours:
+            order = np.ascontiguousarray(self._visit_order(i, j, state.dynamic),
+                                         dtype=np.int64)
+        height = _NO_VALUES
         if shock and m:
-            shock_order, i_lower = self._shock_order(state, i, j, self.gravity)
-        w_start = np.zeros(len(walls) + 1, dtype=np.int64)
-        w_start[1:] = np.cumsum([w.index.size for w in walls])
-        k = int(w_start[-1])
-        w_index = np.zeros(k, dtype=np.int64)
-        w_axis = np.zeros(k, dtype=np.int64)
-        w_inward, w_rest, w_mu = np.zeros(k), np.zeros(k), np.zeros(k)
-        for wall, lo, hi in zip(walls, w_start[:-1], w_start[1:]):
-            w_index[lo:hi], w_axis[lo:hi], w_inward[lo:hi] = wall.index, wall.axis, wall.inward
-            w_rest[lo:hi] = wall.restitution
+            # As _shock_pass: heights relative to the first contact's particle.
+            height = -((state.position - state.position[i[0]]) @ self.gravity)
+            if colours:
+                shock_order, _ = self._shock_order(state, i, j, self.gravity)
+        w_rest, w_mu = _ONE_ZERO, _ONE_ZERO
+        if self.walls is not None:
+            w_rest = _per_particle(state.restitution, n, self.walls.restitution)
             if friction:
-                w_mu[lo:hi] = wall.friction
+                w_mu = _per_particle(state.friction, n, self.friction)
         if record:
             approach0 = -closing_speed(velocity, i, j, normal)
-        hit = np.zeros(m, dtype=bool)
-        summed_normal, summed_tangential = np.zeros(m), np.zeros(m)
-        w_hit = np.zeros(k, dtype=bool)
-        w_normal, w_tangential, w_approach = np.zeros(k), np.zeros(k), np.zeros(k)
-        loss = np.zeros((len(EFFECTS) + 1, n))
-        if ctx.losses is not None:
-            loss[BOOKED] = ctx.losses
-        totals = np.zeros(len(EFFECTS))
+        booked = ctx.losses if ctx.losses is not None else _NO_VALUES
         accumulate = self.warm_start and threshold > 0.0
-        ids = state.ids
-        w_code = w_axis * 2 + (w_inward > 0.0)
-        if accumulate:
-            acc, acc_t, w_acc, w_acc_t = self.cache.lookup(ids, i, j, w_index, w_code)
-        else:
-            self.cache.clear()
-            acc, acc_t = np.zeros(m), np.zeros((m, 3))
-            w_acc, w_acc_t = np.zeros(k), np.zeros((k, 3))
-        sweeps = solve_contacts(
-            velocity, angular, np.ascontiguousarray(state.inv_mass, dtype=float),
+        cache = self.cache
+        (sweeps, totals, hit, summed_normal, summed_tangential, w_start, w_index, w_axis,
+         w_inward, w_hit, w_normal, w_tangential, w_approach, *kept) = solve_step(
+            velocity, angular, np.ascontiguousarray(state.position, dtype=float),
+            np.ascontiguousarray(state.inv_mass, dtype=float),
             np.ascontiguousarray(state.radius, dtype=float),
-            np.ascontiguousarray(state.dynamic, dtype=np.bool_), i, j, normal,
-            rest, mu_k, order, w_start, w_index, w_axis, w_inward, w_rest, w_mu,
-            threshold > 0.0, float(threshold), float(tolerance), STRIKE_FACTOR,
-            int(self.iterations), friction, planar, shock_order, i_lower,
-            SHOCK_PASSES, hit, summed_normal, summed_tangential, w_hit, w_normal,
-            w_tangential, w_approach, loss, totals, accumulate, acc, acc_t, w_acc, w_acc_t)
+            np.ascontiguousarray(state.ids, dtype=np.int64), i, j, normal,
+            _per_pair(restitution), _per_pair(mu if friction else 0.0), colours, order,
+            *planes, WALL_SLOP, w_rest, w_mu, threshold > 0.0, float(threshold),
+            float(tolerance), STRIKE_FACTOR, int(self.iterations), friction, planar, shock,
+            height, shock_order, SHOCK_PASSES, booked, accumulate, ContactCache.MAX_ID,
+            cache.key, cache.normal, cache.tangential, cache.wall_key, cache.wall_normal,
+            cache.wall_tangential)
+        cache.adopt(*kept)
         self.sweeps += int(sweeps)
         self.solves += 1
         self.last_sweeps = int(sweeps)
-        if accumulate:
-            self.cache.store(ids, i, j, acc, acc_t, w_index, w_code, w_acc, w_acc_t)
         if velocity is not state.velocity:
             state.velocity[...] = velocity
         if spin is not None and angular is not spin:
             spin[...] = angular
+        k = w_index.size
         effects = [(RESTITUTION, 'restitution')]
         if k:
             effects.append((WALLS, 'walls'))
@@ -483,20 +508,37 @@ class SequentialImpulseStage(Stage):
             effects.append((FRICTION, 'friction'))
         for row, effect in effects:
             ctx.stats.add_dissipated(effect, float(totals[row]))
-        if ctx.losses is not None:
-            ctx.losses[...] = loss[BOOKED]
-        ctx.stats.collisions += int(hit.sum())
-        ctx.stats.wall_collisions += int(w_hit.sum())
+        ctx.stats.collisions += int(np.count_nonzero(hit))
+        ctx.stats.wall_collisions += int(np.count_nonzero(w_hit))
         if record:
             pushed = summed_normal > 0.0
             record_pairs(ctx.impacts, ctx.time, state.position, state.radius, i[pushed],
                          j[pushed], normal[pushed], summed_normal[pushed],
                          summed_tangential[pushed], np.maximum(approach0[pushed], 0.0))
-            for wall, lo, hi in zip(walls, w_start[:-1], w_start[1:]):
+            planes = [] if self.walls is None else self.walls.planes(ctx.dimensions)
+            for (axis, plane, inward), lo, hi in zip(planes, w_start[:-1], w_start[1:]):
+                if hi == lo:
+                    continue
+                wall = WallContacts(axis, plane, inward, w_index[lo:hi], None, None,
+                                    threshold, None, True)
                 wall.normal_impulse = w_normal[lo:hi]
                 wall.tangential = w_tangential[lo:hi]
                 wall.approach = w_approach[lo:hi]
                 wall.record(ctx)
+
+    def _planes(self, dimensions: int) -> tuple:
+        """Return the wall planes as arrays for the kernel: axis, plane, inward, ulps slop."""
+        if self.walls is None:
+            return _NO_ROWS, _NO_VALUES, _NO_VALUES, _NO_VALUES
+        if self._plane_arrays is None or self._plane_arrays[0] != (self.walls, dimensions):
+            planes = self.walls.planes(dimensions)
+            axis = np.array([p[0] for p in planes], dtype=np.int64)
+            plane = np.array([p[1] for p in planes], dtype=float)
+            inward = np.array([p[2] for p in planes], dtype=float)
+            # As _wall_contacts: WALL_ULPS float spacings at the plane's coordinate.
+            ulps = WALL_ULPS * np.spacing(np.abs(plane))
+            self._plane_arrays = ((self.walls, dimensions), (axis, plane, inward, ulps))
+        return self._plane_arrays[1]
 
     @staticmethod
     def _thresholded(state, i: np.ndarray, j: np.ndarray, normal: np.ndarray, restitution,
