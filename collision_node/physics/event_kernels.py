@@ -82,21 +82,11 @@ DONE, NOT_EXACT, GROW = 0, 1, 2
 MAX_OCC, RECORDED, COLLISIONS, WALL_COLLISIONS, EVENTS, CHORES, BOOKED_PAIRS, \
     BOOKED_WALLS, CROSSINGS, PREDICTIONS, REFRESHES = range(11)
 META_SIZE = 11
-# Columns of ``clock`` (float64, one row per particle): time of the previous
-# impact, next wall event, next cell crossing, refresh time, next event (the
-# heap's key).
-C_LAST, C_WALL, C_CELL, C_REFRESH, C_KEY = range(5)
-CLOCK_COLUMNS = 5
-# Columns of a particle's row of ``body`` (float64): position, velocity,
-# radius, reference time. What a prediction reads of a neighbour is one row
-# of 64 bytes, one cache line (the kernels take views of the columns).
-BODY_POS, BODY_VEL, BODY_RADIUS, BODY_REF = 0, 3, 6, 7
-BODY_COLUMNS = 8
-# Columns of a particle's row of ``grid`` (int64): its cell (3), the cell's
-# slot coordinates in the table (3), the next and the previous particle in
-# its slot's list: one cache line too.
-GRID_NEXT, GRID_PREVIOUS = 6, 7
-GRID_COLUMNS = 8
+# Columns of ``clock`` (float64, one row per particle): reference time, time
+# of the previous impact, next wall event, next cell crossing, refresh time,
+# next event (the heap's key).
+C_REF, C_LAST, C_WALL, C_CELL, C_REFRESH, C_KEY = range(6)
+CLOCK_COLUMNS = 6
 # Columns of ``book`` (int64, one row per particle): change counter, wall of
 # the next wall event (2 axis + side), face of the next crossing, candidates
 # held, which event is next (a candidate's slot, or one of the codes below).
@@ -245,13 +235,13 @@ def _hold(p, q, at, stamp, clock, book, cand_time, cand_int):
 # -- paths --------------------------------------------------------------------
 
 @njit(cache=True, inline='always')
-def _advance(pos, vel, ref, gravity, half_g, accel, varied, p, when):
+def _advance(pos, vel, clock, gravity, half_g, accel, varied, p, when):
     """Bring particle ``p`` to time ``when`` on its parabola (``EventDrivenStage._advance``).
 
     The operations of the vectorised form: x + (v tau + ((g / 2) tau) tau), v + g tau,
     with p's own acceleration for g when particles have their own (``varied``).
     """
-    tau = when - ref[p]
+    tau = when - clock[p, C_REF]
     if varied:
         for c in range(3):
             pos[p, c] += vel[p, c] * tau + (0.5 * accel[p, c]) * tau * tau
@@ -262,7 +252,7 @@ def _advance(pos, vel, ref, gravity, half_g, accel, varied, p, when):
             pos[p, c] += vel[p, c] * tau + half_g[c] * tau * tau
         for c in range(3):
             vel[p, c] += gravity[c] * tau
-    ref[p] = when
+    clock[p, C_REF] = when
 
 
 @njit(cache=True, error_model='numpy', inline='always')
@@ -451,19 +441,19 @@ def curved_delay(dx, dy, dz, ux, uy, uz, ax, ay, az, reach, horizon):
 
 
 @njit(cache=True, error_model='numpy', inline='always')
-def _varied_delay(p, q, when, horizon, pos, vel, radius, accel, rest, ref):
+def _varied_delay(p, q, when, horizon, pos, vel, radius, accel, rest, clock):
     """Return when pair (p, q) meets, each with its own acceleration (``F_VARIED``).
 
     Brings q to ``when`` first; p is there already. A resting partner of p
     is never predicted (inf).
     """
-    tau = when - ref[q]
+    tau = when - clock[q, C_REF]
     if tau != 0.0:
         for c in range(3):
             pos[q, c] += vel[q, c] * tau + (0.5 * accel[q, c]) * tau * tau
         for c in range(3):
             vel[q, c] += accel[q, c] * tau
-        ref[q] = when
+        clock[q, C_REF] = when
     if rest[p, S_SUPPORTED] or rest[q, S_SUPPORTED]:
         for s in range(S_PARTNERS, rest.shape[1]):
             partner = rest[p, s]
@@ -519,7 +509,7 @@ def _remove(p, cell, table, head, nxt, prv, occupancy):
 
 @njit(cache=True, error_model='numpy', inline='always')
 def _own_events(p, pos, vel, radius, gravity, accel, rest, low, high, params, flags, cell,
-                clock, ref, book, walls_too):
+                clock, book, walls_too):
     """Delays until p (at its reference time) leaves its cell and reaches a wall.
 
     Sets p's next crossing (and, with ``walls_too``, its next wall event) as
@@ -529,7 +519,7 @@ def _own_events(p, pos, vel, radius, gravity, accel, rest, low, high, params, fl
     """
     varied = flags[F_VARIED] != 0
     resting_on = rest[p, S_WALLS] if varied else 0
-    when = ref[p]
+    when = clock[p, C_REF]
     size = params[P_CELL]
     r = radius[p]
     best_wall, wall_col = _INF, -1
@@ -561,8 +551,7 @@ def _own_events(p, pos, vel, radius, gravity, accel, rest, low, high, params, fl
 
 @njit(cache=True, error_model='numpy', inline='always')
 def _scan(p, when, along, offset, skip_before, pos, vel, inv_mass, radius, gravity, half_g,
-          accel, rest, params, flags, cell, table, head, nxt, clock, ref, book, cand_time,
-          cand_int):
+          accel, rest, params, flags, cell, table, head, nxt, clock, book, cand_time, cand_int):
     """Predict p against the particles of the cells around it; keep the impacts as candidates.
 
     ``along`` < 0: the 3^d cells around p's cell; otherwise the layer of
@@ -617,9 +606,9 @@ def _scan(p, when, along, offset, skip_before, pos, vel, inv_mass, radius, gravi
                             and not (q < skip_before and inv_mass[q] > 0.0):
                         if varied:
                             at = _varied_delay(p, q, when, horizon, pos, vel, radius, accel,
-                                               rest, ref)
+                                               rest, clock)
                         else:
-                            tau = when - ref[q]
+                            tau = when - clock[q, C_REF]
                             if tau != 0.0:
                                 # _advance(q), written out: no arrays handed on.
                                 pos[q, 0] += vel[q, 0] * tau + hx * tau * tau
@@ -628,7 +617,7 @@ def _scan(p, when, along, offset, skip_before, pos, vel, inv_mass, radius, gravi
                                 vel[q, 0] += gx * tau
                                 vel[q, 1] += gy * tau
                                 vel[q, 2] += gz * tau
-                                ref[q] = when
+                                clock[q, C_REF] = when
                             at = when + pair_delay(
                                 px_ - pos[q, 0], py_ - pos[q, 1], pz_ - pos[q, 2],
                                 vx_ - vel[q, 0], vy_ - vel[q, 1], vz_ - vel[q, 2],
@@ -640,7 +629,7 @@ def _scan(p, when, along, offset, skip_before, pos, vel, inv_mass, radius, gravi
 
 @njit(cache=True, error_model='numpy')
 def _predict(p, bump, skip_before, pos, vel, inv_mass, radius, gravity, half_g, accel, rest,
-             low, high, params, flags, cell, table, head, nxt, clock, ref, book, cand_time,
+             low, high, params, flags, cell, table, head, nxt, clock, book, cand_time,
              cand_int, meta):
     """Predict particle p (at its reference time) afresh: walls, cell, 3^d cells around.
 
@@ -654,10 +643,9 @@ def _predict(p, bump, skip_before, pos, vel, inv_mass, radius, gravity, half_g, 
     book[p, B_HELD] = 0
     clock[p, C_REFRESH] = _INF
     _own_events(p, pos, vel, radius, gravity, accel, rest, low, high, params, flags, cell,
-                clock, ref, book, True)
-    _scan(p, ref[p], -1, 0, skip_before, pos, vel, inv_mass, radius, gravity, half_g,
-          accel, rest, params, flags, cell, table, head, nxt, clock, ref, book, cand_time,
-          cand_int)
+                clock, book, True)
+    _scan(p, clock[p, C_REF], -1, 0, skip_before, pos, vel, inv_mass, radius, gravity, half_g,
+          accel, rest, params, flags, cell, table, head, nxt, clock, book, cand_time, cand_int)
     _set_key(p, clock, book, cand_time)
 
 
@@ -765,15 +753,14 @@ def _keeps_supports(rest, p, nx, ny, nz):
 # loop's time, measured with perf).
 @njit(cache=True, error_model='numpy', _nrt=False)
 def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, half_g, accel, rest,
-               low, high, params, flags, cell, table, head, nxt, prv, occupancy, clock, ref,
-               book, cand_time, cand_int, heap_key, heap_int, meta, totals, losses, rec_f, rec_ij,
-               perm, order, out_pos, out_vel):
+               low, high, params, flags, cell, table, head, nxt, prv, occupancy, clock, book,
+               cand_time, cand_int, heap_key, heap_int, meta, totals, losses, rec_f, rec_ij,
+               perm, out_pos, out_vel):
     """Process every event up to ``end``, then publish every particle at ``end``.
 
     The stage's particles are the world's in another order (neighbours
     near in memory): stage particle k is the world's ``perm[k]``, which is
-    the index that impacts, losses and the published state use; ``order``
-    is the inverse (world particle k is the stage's ``order[k]``).
+    the index that impacts, losses and the published state use.
 
     The rules of ``EventDrivenStage`` (see its module doc): returns the
     status. On ``NOT_EXACT`` (an event the TC model would have to alter
@@ -822,7 +809,7 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, half_g, 
             meta[REFRESHES] += 1
             if meta[CHORES] > 4 * budget:
                 return NOT_EXACT
-            _advance(pos, vel, ref, gravity, half_g, accel, varied, p, when)
+            _advance(pos, vel, clock, gravity, half_g, accel, varied, p, when)
             bump = False
         else:
             if meta[EVENTS] >= budget:
@@ -832,8 +819,8 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, half_g, 
             pass
         elif which >= 0:
             q = cand_int[p, which, 0]
-            _advance(pos, vel, ref, gravity, half_g, accel, varied, p, when)
-            _advance(pos, vel, ref, gravity, half_g, accel, varied, q, when)
+            _advance(pos, vel, clock, gravity, half_g, accel, varied, p, when)
+            _advance(pos, vel, clock, gravity, half_g, accel, varied, q, when)
             rx, ry, rz = vel[p, 0] - vel[q, 0], vel[p, 1] - vel[q, 1], vel[p, 2] - vel[q, 2]
             nx, ny, nz, _ = line_of_action(pos[p, 0] - pos[q, 0], pos[p, 1] - pos[q, 1],
                                            pos[p, 2] - pos[q, 2], rx, ry, rz)
@@ -873,7 +860,7 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, half_g, 
             if inv_mass[q] > 0.0:      # a static particle's events stay valid
                 second = q
         elif which == NEXT_WALL:
-            _advance(pos, vel, ref, gravity, half_g, accel, varied, p, when)
+            _advance(pos, vel, clock, gravity, half_g, accel, varied, p, when)
             face = book[p, B_WALL]
             axis, side = face // 2, face % 2
             toward = 1.0 if side else -1.0      # direction of the wall along the axis
@@ -916,7 +903,7 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, half_g, 
                 clock[p, C_LAST] = when
         elif which == NEXT_CELL:
             meta[CROSSINGS] += 1
-            _advance(pos, vel, ref, gravity, half_g, accel, varied, p, when)
+            _advance(pos, vel, clock, gravity, half_g, accel, varied, p, when)
             crossing = True
         # One site for all predictions: the helpers are inlined here, and
         # arrays passed to a function that is called cost reference counting.
@@ -935,17 +922,14 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, half_g, 
                 book[r, B_HELD] = 0
                 clock[r, C_REFRESH] = _INF
             _own_events(r, pos, vel, radius, gravity, accel, rest, low, high, params, flags, cell,
-                        clock, ref, book, not crossing)
+                        clock, book, not crossing)
             _scan(r, when, along, offset, 0, pos, vel, inv_mass, radius, gravity, half_g, accel,
-                  rest, params, flags, cell, table, head, nxt, clock, ref, book, cand_time,
-                  cand_int)
+                  rest, params, flags, cell, table, head, nxt, clock, book, cand_time, cand_int)
             _set_key(r, clock, book, cand_time)
             heap_update(clock, heap_key, heap_int, r)
-    # In the world's order: its arrays are written in sequence, and a
-    # particle's own data are one row of ``body`` (and of ``accel``).
-    for k in range(pos.shape[0]):
-        p = order[k]
-        _advance(pos, vel, ref, gravity, half_g, accel, varied, p, end)
+    for p in range(pos.shape[0]):
+        _advance(pos, vel, clock, gravity, half_g, accel, varied, p, end)
+        k = perm[p]
         for c in range(3):
             out_pos[k, c] = pos[p, c]
             out_vel[k, c] = vel[p, c]
@@ -954,7 +938,7 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, half_g, 
 
 @njit(cache=True, error_model='numpy')
 def build_events(when, pos, vel, inv_mass, radius, gravity, accel, rest, low, high, params,
-                 flags, cell, table, head, nxt, prv, occupancy, clock, ref, book, cand_time,
+                 flags, cell, table, head, nxt, prv, occupancy, clock, book, cand_time,
                  cand_int, heap_key, heap_int, meta):
     """Fill the grid, predict every dynamic particle (each pair once) and order the heap.
 
@@ -968,8 +952,8 @@ def build_events(when, pos, vel, inv_mass, radius, gravity, accel, rest, low, hi
     for p in range(n):
         if inv_mass[p] > 0.0:
             _predict(p, False, p, pos, vel, inv_mass, radius, gravity, half_g, accel, rest,
-                     low, high, params, flags, cell, table, head, nxt, clock, ref, book,
-                     cand_time, cand_int, meta)
+                     low, high, params, flags, cell, table, head, nxt, clock, book, cand_time,
+                     cand_int, meta)
         else:
             book[p, B_NEXT] = NEXT_NONE
     heapify(clock, heap_key, heap_int)
@@ -977,14 +961,10 @@ def build_events(when, pos, vel, inv_mass, radius, gravity, accel, rest, low, hi
 
 @njit(cache=True)
 def matches(state_pos, state_vel, state_inv_mass, state_radius, pos, vel, inv_mass, radius,
-            order):
-    """Say whether the world's particles are still the ones the last step published.
-
-    World particle k is the stage's ``order[k]`` (the inverse of ``perm``):
-    the world's arrays are read in sequence, the stage's a row at a time.
-    """
-    for k in range(state_pos.shape[0]):
-        p = order[k]
+            perm):
+    """Say whether the world's particles are still the ones the last step published."""
+    for p in range(pos.shape[0]):
+        k = perm[p]
         if state_inv_mass[k] != inv_mass[p] or state_radius[k] != radius[p]:
             return False
         for c in range(3):
@@ -1006,64 +986,36 @@ def new_arrays(n: int) -> tuple:
             np.empty((2, n), dtype=np.int64))
 
 
-def new_body(position: np.ndarray, velocity: np.ndarray, radius: np.ndarray,
-             when: float) -> tuple:
-    """Return (body, pos, vel, radius, ref): the particles' rows and the kernels' views of them.
-
-    Each particle's row (``BODY_COLUMNS``) holds its position, velocity,
-    radius and reference time (``when``), so a prediction reads one cache
-    line of a neighbour; the views are what the kernels take.
-    """
-    body = np.empty((len(radius), BODY_COLUMNS))
-    body[:, BODY_POS:BODY_POS + 3] = position
-    body[:, BODY_VEL:BODY_VEL + 3] = velocity
-    body[:, BODY_RADIUS] = radius
-    body[:, BODY_REF] = when
-    return (body, body[:, BODY_POS:BODY_POS + 3], body[:, BODY_VEL:BODY_VEL + 3],
-            body[:, BODY_RADIUS], body[:, BODY_REF])
-
-
-def new_grid(cell: np.ndarray) -> tuple:
-    """Return (grid, cell, nxt, prv) for particles in ``cell`` (cells, then slots: 6 columns).
-
-    The rows hold the cell, its slot and the particle's links in its slot's
-    list (not linked yet: -1); the views are what the kernels take.
-    """
-    grid = np.full((len(cell), GRID_COLUMNS), -1, dtype=np.int64)
-    grid[:, :6] = cell
-    return grid, grid[:, :6], grid[:, GRID_NEXT], grid[:, GRID_PREVIOUS]
-
-
 def warm_up() -> None:
     """Run the kernels once on two particles meeting head on between walls."""
-    _, pos, vel, radius, ref = new_body(np.array([[-0.5, 0.0, 0.0], [0.5, 0.0, 0.0]]),
-                                        np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]),
-                                        np.full(2, 0.25), 0.0)
-    inv_mass = np.ones(2)
+    pos = np.array([[-0.5, 0.0, 0.0], [0.5, 0.0, 0.0]])
+    vel = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    inv_mass, radius = np.ones(2), np.full(2, 0.25)
     gravity, low, high = np.zeros(3), np.full(3, -1.0), np.full(3, 1.0)
     params = np.array([1e-5, 0.0, 1.0, 1.0, 0.5, 1.0])
     flags = np.array([3, 0, 1, 1, 1, 1, 0], dtype=np.int64)
     accel, rest = new_supports(2, 1)
     table = np.full(3, 7, dtype=np.int64)
-    cells = np.zeros((2, 6), dtype=np.int64)
-    cells[:, :3] = np.floor(pos / 0.5)
-    cells[:, 3:] = cells[:, :3] % table
-    _, cell, nxt, prv = new_grid(cells)
+    cell = np.zeros((2, 6), dtype=np.int64)
+    cell[:, :3] = np.floor(pos / 0.5)
+    cell[:, 3:] = cell[:, :3] % table
     head, occupancy = np.full(343, -1, dtype=np.int64), np.zeros(343, dtype=np.int64)
+    nxt, prv = np.full(2, -1, dtype=np.int64), np.full(2, -1, dtype=np.int64)
     clock, book, cand_time, cand_int, heap_key, heap_int = new_arrays(2)
+    clock[:, C_REF] = 0.0
     meta = np.zeros(META_SIZE, dtype=np.int64)
     build_events(0.0, pos, vel, inv_mass, radius, gravity, accel, rest, low, high, params,
-                 flags, cell, table, head, nxt, prv, occupancy, clock, ref, book, cand_time,
-                 cand_int, heap_key, heap_int, meta)
+                 flags, cell, table, head, nxt, prv, occupancy, clock, book, cand_time, cand_int,
+                 heap_key, heap_int, meta)
     out_pos, out_vel = pos.copy(), vel.copy()
     perm = np.arange(2)
     run_events(1.0, 1000, pos, vel, inv_mass, radius, np.full(2, np.nan), gravity, gravity,
                accel, rest, low, high, params, flags, cell, table, head, nxt, prv, occupancy,
-               clock, ref, book, cand_time, cand_int, heap_key, heap_int, meta, np.zeros(2),
+               clock, book, cand_time, cand_int, heap_key, heap_int, meta, np.zeros(2),
                np.zeros(2),
-               np.empty((4, RECORD_COLUMNS)), np.empty((4, 2), dtype=np.int64), perm, perm,
-               out_pos, out_vel)
-    matches(out_pos, out_vel, inv_mass, np.full(2, 0.25), pos, vel, inv_mass, radius, perm)
+               np.empty((4, RECORD_COLUMNS)), np.empty((4, 2), dtype=np.int64), perm, out_pos,
+               out_vel)
+    matches(out_pos, out_vel, inv_mass, radius, pos, vel, inv_mass, radius, perm)
     curved_delay(1.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.5, 1.0)
 
 

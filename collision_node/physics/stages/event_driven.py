@@ -181,25 +181,22 @@ class EventDrivenStage(Stage):
         # arithmetic): stage particle k is the world's perm[k]. The loop moves
         # it lazily and publishes to the world's arrays only at a step's end,
         # so a step handed to the fallback leaves the world's state untouched.
-        # A particle's position, velocity, radius and reference time share
-        # one row (``ek.new_body``), its cell and links another
-        # (``ek.new_grid``): a neighbour costs a prediction two cache lines.
         self.perm = np.lexsort((cell[:, 2], cell[:, 1], cell[:, 0])).astype(np.int64)
-        self.order = np.empty(n, dtype=np.int64)        # the inverse: world -> stage
-        self.order[self.perm] = np.arange(n)
-        cell = cell[self.perm]
-        (self.body, self.position, self.velocity, self.radius,
-         self.ref) = ek.new_body(state.position[self.perm], state.velocity[self.perm],
-                                 state.radius[self.perm], self.time)
+        self.cell = cell[self.perm]
+        self.position = state.position[self.perm]
+        self.velocity = state.velocity[self.perm]
         self.inv_mass = state.inv_mass[self.perm]
+        self.radius = state.radius[self.perm]
         (self.clock, self.book, self.cand_time, self.cand_int, self.heap_key,
          self.heap_int) = ek.new_arrays(n)
-        self.table = self._table_shape(n, dimensions, cell)
-        cell[:, 3:] = cell[:, :3] % self.table
-        self.grid, self.cell, self.next, self.previous = ek.new_grid(cell)
+        self.clock[:, ek.C_REF] = self.time
+        self.table = self._table_shape(n, dimensions)
+        self.cell[:, 3:] = self.cell[:, :3] % self.table
         slots = int(np.prod(self.table))
         self.head = np.full(slots, -1, dtype=np.int64)
         self.occupancy = np.zeros(slots, dtype=np.int64)
+        self.next = np.full(n, -1, dtype=np.int64)
+        self.previous = np.full(n, -1, dtype=np.int64)
         self.meta = np.zeros(ek.META_SIZE, dtype=np.int64)
         self.low, self.high = self.low_walls, self.high_walls
         own = state.restitution
@@ -214,18 +211,20 @@ class EventDrivenStage(Stage):
         ek.build_events(self.time, self.position, self.velocity, self.inv_mass, self.radius,
                         self.gravity, self.accel, self.rest, self.low, self.high, self.params,
                         self.flags, self.cell, self.table, self.head, self.next, self.previous,
-                        self.occupancy, self.clock, self.ref, self.book, self.cand_time,
-                        self.cand_int, self.heap_key, self.heap_int, self.meta)
+                        self.occupancy, self.clock, self.book, self.cand_time, self.cand_int,
+                        self.heap_key, self.heap_int, self.meta)
 
     def _stage_supports(self, n: int) -> tuple:
         """Return this step's (accel, rest) in the stage's order (no rows: nobody supported)."""
         if self._supports is None:
             return ek.new_supports(0, rk.PARTNERS)
         accel, rest = self._supports
+        inverse = np.empty(n, dtype=np.int64)
+        inverse[self.perm] = np.arange(n)
         rest = rest[self.perm]
         partners = rest[:, ek.S_PARTNERS:]
         # Partners are particles (world index, >= 0) or walls (< -1); -1 ends a list.
-        partners[partners >= 0] = self.order[partners[partners >= 0]]
+        partners[partners >= 0] = inverse[partners[partners >= 0]]
         return np.ascontiguousarray(accel[self.perm]), rest
 
     def _find_supports(self, ctx: StepContext) -> bool:
@@ -298,12 +297,12 @@ class EventDrivenStage(Stage):
         spacing = (self.particles_per_cell * volume / len(state)) ** (1.0 / dimensions)
         return max(diameter, spacing)
 
-    def _table_shape(self, n: int, dimensions: int, cell: np.ndarray) -> np.ndarray:
+    def _table_shape(self, n: int, dimensions: int) -> np.ndarray:
         """Slots per axis: the cells the particles (and a box) span, plus one each side."""
         table = np.ones(3, dtype=np.int64)
         if n:
-            low = cell.min(axis=0)[:dimensions].astype(float)
-            high = cell.max(axis=0)[:dimensions].astype(float)
+            low = self.cell.min(axis=0)[:dimensions].astype(float)
+            high = self.cell.max(axis=0)[:dimensions].astype(float)
             if self.walls is not None:
                 # A box bounds where particles go: cover it whole.
                 lo = np.floor(self.walls.low[:dimensions] / self.cell_size)
@@ -324,7 +323,7 @@ class EventDrivenStage(Stage):
                 and state.position.shape == self.position.shape
                 and ek.matches(state.position, state.velocity, state.inv_mass, state.radius,
                                self.position, self.velocity, self.inv_mass, self.radius,
-                               self.order))
+                               self.perm))
 
     # -- the stage ---------------------------------------------------------
 
@@ -378,9 +377,8 @@ class EventDrivenStage(Stage):
                 self.own_e, self.gravity, self.half_g, self.accel, self.rest, self.low,
                 self.high, self.params,
                 self.flags, self.cell, self.table, self.head, self.next, self.previous,
-                self.occupancy, self.clock, self.ref, self.book, self.cand_time,
-                self.cand_int, self.heap_key, self.heap_int, meta, totals, losses, rec_f, rec_ij,
-                self.perm, self.order,
+                self.occupancy, self.clock, self.book, self.cand_time, self.cand_int,
+                self.heap_key, self.heap_int, meta, totals, losses, rec_f, rec_ij, self.perm,
                 state.position, state.velocity)
             if status != ek.GROW:
                 break
