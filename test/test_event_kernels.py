@@ -193,6 +193,38 @@ def test_budget_overrun_rolls_back_and_falls_back():
     assert w.pipeline.stages[0].events == 0             # the attempt's events are undone
 
 
+@pytest.mark.parametrize('field', ['position', 'velocity', 'inv_mass', 'radius'])
+def test_a_state_changed_between_steps_is_predicted_afresh(field):
+    """An in-place change to any particle between steps makes the stage rebuild.
+
+    The stage keeps its particles in cell order; its check reads the world's
+    arrays in the world's order, so every particle is compared with its own.
+    """
+    w = exact_world(gas(200, 0.02, dt=0.01))
+    w.step(2)
+    stage = w.pipeline.stages[0]
+    assert stage._still_valid(w.state)
+    moved = np.flatnonzero(stage.perm != np.arange(len(w.state)))
+    assert moved.size > 100                   # the cell order is not the world's
+    for k in moved[::20]:
+        values = getattr(w.state, field)
+        before = values[k].copy()
+        values[k] = np.nextafter(before, np.inf)      # one ulp is a change
+        assert not stage._still_valid(w.state)
+        values[k] = before
+        assert stage._still_valid(w.state)
+    # A changed velocity is taken up: the world goes on from it exactly as a
+    # fresh world started from the same state.
+    w.state.velocity[moved[0]] *= -1.0
+    fresh = exact_world(gas(200, 0.02, dt=0.01))
+    fresh.state = w.state.copy()
+    fresh.pipeline.stages[0].time = stage.time
+    w.step(3)
+    fresh.step(3)
+    np.testing.assert_array_equal(w.state.position, fresh.state.position)
+    np.testing.assert_array_equal(w.state.velocity, fresh.state.velocity)
+
+
 # -- the heap of particles and the candidate lists -------------------------------
 
 def test_heap_keeps_the_earliest_particle_on_top_as_keys_change():

@@ -105,6 +105,10 @@ MAX_FALLBACK_HOLD = 63
 # Slots of the cell table per particle, at most (an open scene that spreads
 # out shares slots between far cells; the neighbour query tells them apart).
 SLOTS_PER_PARTICLE = 8
+# What the loop is handed when it records no impacts and books no losses
+# (never written: not worth fresh arrays every step).
+_NO_RECORDS = (np.empty((0, ek.RECORD_COLUMNS)), np.empty((0, 2), dtype=np.int64))
+_NO_LOSSES = np.zeros(0)
 
 
 class EventDrivenStage(Stage):
@@ -361,18 +365,18 @@ class EventDrivenStage(Stage):
         self.flags[ek.F_RECORD] = record
         self.flags[ek.F_LOSSES] = ctx.losses is not None
         meta = self.meta
-        meta[[ek.RECORDED, ek.COLLISIONS, ek.WALL_COLLISIONS, ek.EVENTS, ek.CHORES,
-              ek.BOOKED_PAIRS, ek.BOOKED_WALLS, ek.CROSSINGS, ek.PREDICTIONS, ek.REFRESHES]] = 0
+        meta[ek.MAX_OCC + 1:] = 0       # this step's counters (the largest occupancy stays)
         dissipated = ctx.stats.dissipated
         totals = np.array([dissipated.get('restitution', 0.0), dissipated.get('walls', 0.0)])
-        losses = np.zeros(n if ctx.losses is not None else 0)
-        rows = 64 if record else 0
+        losses = np.zeros(n) if ctx.losses is not None else _NO_LOSSES
         own = state.restitution         # read each step, as the law reads it at each impact
         self.flags[ek.F_OWN_E] = own is not None
         if own is not None:
             self.own_e = np.asarray(own, float)[self.perm]
-        rec_f = np.empty((rows, ek.RECORD_COLUMNS))
-        rec_ij = np.empty((rows, 2), dtype=np.int64)
+        if record:
+            rec_f, rec_ij = np.empty((64, ek.RECORD_COLUMNS)), np.empty((64, 2), dtype=np.int64)
+        else:
+            rec_f, rec_ij = _NO_RECORDS
         while True:
             status = ek.run_events(
                 end, budget, self.position, self.velocity, self.inv_mass, self.radius,
