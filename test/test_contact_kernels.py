@@ -206,3 +206,28 @@ def test_the_cache_folder_follows_every_physics_source(tmp_path):
     law = copy / 'contact_law.py'
     law.write_text(law.read_text() + '\n# changed\n')
     assert k.sources_digest(str(copy)) != before
+
+
+def test_every_kernel_module_is_prepared_up_front():
+    """Each physics module that compiles kernels has them prepared by ``kernels.prepare``.
+
+    One left out would compile on its first use instead (a first step that
+    takes seconds, without the 'compiling' message; the setup script would
+    not compile it either). Helpers that only other kernels call are
+    compiled with them, so a module counts when any of its kernels is listed.
+    """
+    import importlib
+    import pkgutil
+
+    from collision_node import physics
+    from collision_node.physics import kernels as k
+    from numba.core.registry import CPUDispatcher
+    prepared = {kernel.py_func.__module__ for kernel in k.all_kernels()}
+    compiled = set()
+    for info in pkgutil.walk_packages(physics.__path__, 'collision_node.physics.'):
+        module = importlib.import_module(info.name)
+        if any(isinstance(value, CPUDispatcher) and value.py_func.__module__ == info.name
+               for value in vars(module).values()):
+            compiled.add(info.name)
+    assert 'collision_node.physics.resting_kernels' in compiled
+    assert compiled == prepared

@@ -11,13 +11,13 @@ from __future__ import annotations
 import time
 from typing import Callable, Optional
 
-from . import (contact_kernels, event_kernels, grid_kernels, sleep_kernels, step_kernels,
-               swept_kernels, wall_kernels)
+from . import (contact_kernels, event_kernels, grid_kernels, resting_kernels, sleep_kernels,
+               step_kernels, swept_kernels, wall_kernels)
 from .numba_cache import CACHE_DIR
 
 # Each module gives warm_up() (call every kernel once on a tiny problem) and kernels().
-MODULES = (contact_kernels, swept_kernels, sleep_kernels, event_kernels, grid_kernels,
-           wall_kernels, step_kernels)
+MODULES = (contact_kernels, swept_kernels, sleep_kernels, event_kernels, resting_kernels,
+           grid_kernels, wall_kernels, step_kernels)
 
 _PREPARED = False
 
