@@ -139,6 +139,16 @@ class Probe:
         self.node.create_subscription(msg_type, topic, received.append, qos)
         return received
 
+    def drain(self, rounds: int = 100) -> None:
+        """Take every message already queued for this probe (each subscription keeps up to 10).
+
+        A probe spins only while a test waits, so messages published before
+        the test's last answer may still be queued; counting 'the next two'
+        would count those first.
+        """
+        for _ in range(rounds):
+            self.executor.spin_once(timeout_sec=0.0)
+
     def wait_for(self, predicate: Callable[[], Any], timeout: float = 15.0) -> Any:
         """Spin until ``predicate()`` is truthy and return it; fail after ``timeout``."""
         deadline = time.monotonic() + timeout

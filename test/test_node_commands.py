@@ -52,9 +52,12 @@ def fresh(node):
 def world(node) -> dict:
     """Return the state the node publishes from now on.
 
-    The second cloud received after the call is certainly published after
-    every request answered so far.
+    Clouds published before the last answer may still be queued (the probe
+    spins only while a test waits): they are taken first (``drain``); the
+    second cloud received after that is published after every request
+    answered so far.
     """
+    node.probe.drain()
     start = len(node.clouds)
     node.probe.wait_for(lambda: len(node.clouds) >= start + 2)
     return state_from_point_cloud(node.clouds[-1])

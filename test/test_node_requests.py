@@ -57,7 +57,12 @@ def fresh(node):
 
 
 def world(node) -> dict:
-    """Return the state the node publishes after every request answered so far."""
+    """Return the state the node publishes after every request answered so far.
+
+    Clouds published before the last answer may still be queued: they are
+    taken first (``drain``), then two more are waited for.
+    """
+    node.probe.drain()
     start = len(node.clouds)
     node.probe.wait_for(lambda: len(node.clouds) >= start + 2)
     return state_from_point_cloud(node.clouds[-1])
