@@ -154,7 +154,8 @@ class SeparationStage(Stage):
         if self.backend == 'kernel':
             i, j = (c.i, c.j) if has_pairs else (np.zeros(0, np.int64), np.zeros(0, np.int64))
             velocity = np.ascontiguousarray(s.velocity, dtype=float)
-            paid = pay_for_lift(np.ascontiguousarray(s.position, dtype=float), start, velocity,
+            position = np.ascontiguousarray(s.position, dtype=float)
+            paid = pay_for_lift(position, start, velocity,
                                 np.ascontiguousarray(s.inv_mass, dtype=float),
                                 np.ascontiguousarray(s.dynamic, dtype=np.bool_),
                                 np.ascontiguousarray(i, dtype=np.int64),
@@ -163,10 +164,15 @@ class SeparationStage(Stage):
                                 np.ascontiguousarray(budget, dtype=float))
             if velocity is not s.velocity:
                 s.velocity[...] = velocity
+            if position is not s.position:
+                s.position[...] = position
         else:
             cluster = clusters(len(s), s.dynamic, c.i, c.j) if has_pairs else \
                 np.arange(len(s))
             paid = self._pay_for_lift(s, start, added, cluster, budget)
+        # The lift actually made: particles the budget and their speed could not
+        # pay for went back part of their way.
+        added = lift(s.inv_mass, s.position - start, gravity)
         ctx.book('separation', paid - added, np.arange(len(s)))
 
     @staticmethod
@@ -207,6 +213,14 @@ class SeparationStage(Stage):
         slower = np.sqrt(np.maximum(along * along - 2.0 * taken / mass, 0.0))
         state.velocity[index] += (slower - along)[:, None] * way
         removed[index] = taken
+        # What the speed cannot pay is not lifted: the particle goes back along
+        # its push by that fraction of it, so the lift adds no energy (a lift
+        # that "stayed added" restored overlap an earlier step left, or fed a
+        # ball sliding over a static one; see the module docstring).
+        unpaid = owed - taken
+        back = unpaid > 0.0
+        state.position[index[back]] -= (unpaid[back] / added[index[back]])[:, None] * \
+            moved[back]
         return removed
 
     def _project(self, ctx: StepContext, has_pairs: bool) -> None:
