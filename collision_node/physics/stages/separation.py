@@ -35,9 +35,20 @@ there, so it keeps its apex (without this each elastic bounce there added
 m g times the overlap; found by the fuzzer), also when an inelastic
 impact elsewhere in the world dissipates in the same step (the budget
 used to be the whole world's). What such speeds cannot pay (resting or
-falling particles) stays added. Everything is booked as 'separation' (a
-net addition as a negative loss), from each particle's displacement,
--m g . dx, so the energy balance closes, also far from the origin.
+falling particles) is not lifted: each such particle goes back along its
+push by the unpaid fraction of it, so the projection never adds energy
+and the unpaid overlap stays. It used to stay added, and that let energy
+rise in two ways: a lift restoring overlap an earlier step's four passes
+left (a ball landing on one resting on a floor: each pass gives the
+lower ball half the push into the floor, the floor takes it back, 1/16
+of the overlap is left, and the next steps lifted it out with nothing to
+pay: +5.2e-5 J under ``balanced``), and a ball sliding over a static one
+(the drift leaves the curved surface by v_t^2 dt^2 / 2R, so per substep
+the lift m g_n dt^2 (g_n - v_t^2/R) / 2 exceeds the loss of the stopped
+approach speed dt (g_n - v_t^2/R) by m dt^2 (g_n - v_t^2/R) v_t^2/R / 2).
+Everything is booked as 'separation' (a net addition as a negative loss),
+from each particle's final displacement, -m g . dx, so the energy balance
+closes, also far from the origin.
 
 Two backends do exactly this. ``kernel`` (the default) runs the passes,
 wall clamps and the per-cluster budget (clusters by union-find) in
