@@ -21,7 +21,7 @@ from collision_node.physics.effects import Effects, Walls
 from collision_node.physics.scene import load_scene
 from collision_node.physics.stages.narrowphase import (
     NarrowphaseStage, find_contacts, find_contacts_compiled)
-from collision_node.physics.stages.separation import SeparationStage
+from collision_node.physics.stages.separation import clusters, SeparationStage
 from collision_node.physics.state import ParticleState
 from collision_node.physics.step import StepContext, StepStats
 
@@ -143,9 +143,40 @@ def test_compiled_separation_equals_numpy_on_random_overlaps(dims, gravity, wall
     assert moved.sum() > 30                              # the projection did work
     assert_same_outcome(ref, new)
     if gravity:
-        # Some lift was paid from speed, some left as an addition.
+        # Some lift was paid from speed, some by the losses, and the rest not made.
         assert ref.stats.dissipated['separation'] != 0.0
         assert np.any(ref.state.velocity != state.velocity)
+        assert_lift_within_budget(state, ref, contacts, losses)
+
+
+def assert_lift_within_budget(before: ParticleState, ctx: StepContext, contacts,
+                              losses: np.ndarray) -> None:
+    """Assert the separation added no energy beyond each cluster's losses.
+
+    Per cluster of touching dynamic particles, the kinetic plus potential
+    energy the stage added is at most the cluster's losses (0 if negative),
+    to round-off; the booking (a negative loss) is that addition exactly.
+    Some cluster must have had a lift its budget and speed could not pay
+    (so the rule that moves particles back was exercised).
+    """
+    s = ctx.state
+    mass = np.where(s.inv_mass > 0.0, 1.0 / np.where(s.inv_mass > 0.0, s.inv_mass, 1.0), 0.0)
+    kinetic = 0.5 * mass * ((s.velocity ** 2).sum(axis=1) - (before.velocity ** 2).sum(axis=1))
+    potential = -mass * ((s.position - before.position) @ GRAVITY)
+    added = kinetic + potential
+    np.testing.assert_allclose(-(ctx.losses - losses), added, rtol=1e-9, atol=1e-15)
+    cluster = clusters(len(s), s.dynamic, contacts.i, contacts.j)
+    count = int(cluster.max()) + 1
+    per_cluster = np.bincount(cluster, weights=added, minlength=count)
+    budget = np.maximum(np.bincount(cluster, weights=losses, minlength=count), 0.0)
+    assert np.all(per_cluster <= budget + 1e-12 * (1.0 + budget))
+    # Pure projection (no budget rule) would have lifted some cluster further.
+    projected = context(copy.deepcopy(before), ctx.effects, ctx.dimensions, None)
+    projected.contacts = contacts
+    SeparationStage(walls=ctx.effects.walls, backend='numpy')._project(projected, True)
+    lifted = -mass * ((projected.state.position - before.position) @ GRAVITY)
+    over = np.bincount(cluster, weights=lifted, minlength=count) > budget + 1e-9
+    assert over.any()
 
 
 def test_compiled_separation_holds_particles_at_walls_like_numpy():

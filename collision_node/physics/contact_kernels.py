@@ -1178,7 +1178,8 @@ def _root(parent, p):
 def pay_for_lift(position, start, velocity, inv_mass, dynamic, pi, pj, added, budget):
     """Take back what the projection's net lift adds per cluster; return J removed per particle.
 
-    The law of ``SeparationStage._pay_for_lift``; clusters are the connected
+    The law of ``SeparationStage._pay_for_lift`` (``position`` is moved back
+    in place where the speed cannot pay); clusters are the connected
     components of the pairs between two dynamic particles (union-find, the
     partition ``separation.clusters`` finds), sums per cluster run in
     particle order as numpy's ``bincount``.
@@ -1226,6 +1227,14 @@ def pay_for_lift(position, start, velocity, inv_mass, dynamic, pi, pj, added, bu
         velocity[p, 1] += change * wy
         velocity[p, 2] += change * wz
         removed[p] = taken
+        # What the speed cannot pay is not lifted: the particle goes back along
+        # its push by that fraction of it (positions only, see the stage).
+        unpaid = owed - taken
+        if unpaid > 0.0:
+            back = unpaid / added[p]
+            position[p, 0] -= back * mx
+            position[p, 1] -= back * my
+            position[p, 2] -= back * mz
     return removed
 
 
