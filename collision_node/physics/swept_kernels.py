@@ -311,6 +311,27 @@ def _out_of_reach(x, v, radius, local_time, dynamic, i, j, gravity, horizon):
 
 
 @njit(cache=True, error_model='numpy')
+def _walls_out_of_reach(x, v, radius, local_time, p, low, high, dimensions, gravity, horizon):
+    """Return True if falling particle p surely reaches no wall plane by ``horizon``.
+
+    ``_out_of_reach`` for the walls: along each axis the path moves at most
+    |v| s + |g| s^2 / 2 in the time s left, asked with the same margins, so
+    ``wall_times`` would give every column no root or one that rounds past
+    ``horizon``. A particle already touching or past a plane (gap <= the
+    margin) is never rejected.
+    """
+    span = (horizon - local_time[p]) + REACH_MARGIN * horizon
+    r = radius[p]
+    for axis in range(dimensions):
+        pos = x[p, axis]
+        move = (abs(v[p, axis]) * span + 0.5 * abs(gravity[axis]) * span * span) \
+            * (1.0 + REACH_MARGIN) + REACH_MARGIN * r
+        if not (pos - (low[axis] + r) > move and (high[axis] - r) - pos > move):
+            return False
+    return True
+
+
+@njit(cache=True, error_model='numpy')
 def _predict_falling(first, last, keys, use_keys, seen, round_, x, v, radius, local_time,
                      dynamic, a, b, gravity, min_speed, dt, has_resting, resting_pair, touched,
                      pair_t, listed, pending, n_pending):
@@ -621,10 +642,15 @@ def sweep(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, 
                                               has_resting, resting_pair, touched, pair_t,
                                               listed, pending, n_pending)
             if has_walls and dynamic[p]:
-                n_wall_due = _predict_walls(p, x, v, radius, local_time, low, high, dimensions,
-                                            gravity, has_gravity, min_speed, dt, has_resting,
-                                            resting_wall, touched, wall_t, first_wall,
-                                            wall_listed, wall_due, n_wall_due)
+                if has_gravity and _walls_out_of_reach(x, v, radius, local_time, p, low, high,
+                                                       dimensions, gravity, dt):
+                    # Its row of wall_t is read only while it is due.
+                    first_wall[p] = np.inf
+                else:
+                    n_wall_due = _predict_walls(p, x, v, radius, local_time, low, high,
+                                                dimensions, gravity, has_gravity, min_speed, dt,
+                                                has_resting, resting_wall, touched, wall_t,
+                                                first_wall, wall_listed, wall_due, n_wall_due)
         for c in range(n_changed):
             is_changed[changed[c]] = False
         n_changed = 0
