@@ -275,6 +275,99 @@ def _grow(records, index, count):
     return bigger, bigger_index
 
 
+# Relative margin of ``_out_of_reach``: far above the rounding of its
+# distance test (a few ulps) and of the root ``pair_time`` computes (at worst
+# about 3e-8 relative, for a grazing pair, where its discriminant cancels).
+REACH_MARGIN = 1.0e-6
+
+
+@njit(cache=True, error_model='numpy', inline='always')
+def _out_of_reach(x, v, radius, local_time, dynamic, i, j, gravity, horizon):
+    """Return True if falling pair (i, j) surely has no impact by ``horizon``.
+
+    A test without divisions, taken before ``pair_time`` under gravity:
+    when both particles fall alike their relative path is straight, and
+    they cannot touch within the time s left when |p| > r_i + r_j + |u| s
+    (p, u: offset and relative velocity at their common time, formed as
+    ``pair_time`` forms them). It is asked with margins (REACH_MARGIN
+    relative, and s longer by REACH_MARGIN * horizon), so ``pair_time``
+    would give a rejected pair no root or one that rounds past
+    ``horizon``: the rounds list only times <= horizon, so rejection
+    (inf) changes nothing. A falling and a static particle (a curved
+    relative path), NaN and subnormal scales are never rejected.
+    """
+    if dynamic[i] != dynamic[j]:
+        return False
+    start = max(local_time[i], local_time[j])
+    ta, tb = start - local_time[i], start - local_time[j]
+    g0, g1, g2 = gravity[0], gravity[1], gravity[2]
+    px, ux = _relative(x, v, i, j, 0, ta, tb, g0, g0, True)
+    py, uy = _relative(x, v, i, j, 1, ta, tb, g1, g1, True)
+    pz, uz = _relative(x, v, i, j, 2, ta, tb, g2, g2, True)
+    span = (horizon - start) + REACH_MARGIN * horizon
+    limit = (radius[i] + radius[j] + math.sqrt(ux * ux + uy * uy + uz * uz) * span) \
+        * (1.0 + REACH_MARGIN)
+    return limit > 1.0e-150 and px * px + py * py + pz * pz > limit * limit
+
+
+@njit(cache=True, error_model='numpy')
+def _walls_out_of_reach(x, v, radius, local_time, p, low, high, dimensions, gravity, horizon):
+    """Return True if falling particle p surely reaches no wall plane by ``horizon``.
+
+    ``_out_of_reach`` for the walls: along each axis the path moves at most
+    |v| s + |g| s^2 / 2 in the time s left, asked with the same margins, so
+    ``wall_times`` would give every column no root or one that rounds past
+    ``horizon``. A particle already touching or past a plane (gap <= the
+    margin) is never rejected.
+    """
+    span = (horizon - local_time[p]) + REACH_MARGIN * horizon
+    r = radius[p]
+    for axis in range(dimensions):
+        pos = x[p, axis]
+        move = (abs(v[p, axis]) * span + 0.5 * abs(gravity[axis]) * span * span) \
+            * (1.0 + REACH_MARGIN) + REACH_MARGIN * r
+        if not (pos - (low[axis] + r) > move and (high[axis] - r) - pos > move):
+            return False
+    return True
+
+
+@njit(cache=True, error_model='numpy')
+def _predict_falling(first, last, keys, use_keys, seen, round_, x, v, radius, local_time,
+                     dynamic, a, b, gravity, min_speed, dt, has_resting, resting_pair, touched,
+                     pair_t, listed, pending, n_pending):
+    """Predict pairs again under gravity; list the due ones; return the pending count.
+
+    The pairs are ``keys[first:last]`` not yet ``seen`` in this round (a
+    particle's incident pairs), or with ``use_keys`` False every pair in
+    ``range(first, last)``. As ``_predict_pair``, except that a resting
+    pair not yet touched and a pair ``_out_of_reach`` rejects get inf
+    without solving for a root (``pair_time`` would give them inf or a time
+    past ``dt``, which the rounds treat alike). Written out as a loop of
+    its own: through an inlined per-pair function the test saved nothing
+    (80 ns a pair, against 20 here, on the 10k-sphere pour).
+    """
+    for q in range(first, last):
+        k = q
+        if use_keys:
+            k = keys[q]
+            if seen[k] == round_:
+                continue
+            seen[k] = round_
+        i, j = a[k], b[k]
+        if has_resting and resting_pair[k] and not (touched[i] or touched[j]):
+            t = np.inf
+        elif _out_of_reach(x, v, radius, local_time, dynamic, i, j, gravity, dt):
+            t = np.inf
+        else:
+            t = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, True, min_speed, dt)
+        pair_t[k] = t
+        if t <= dt and not listed[k]:
+            listed[k] = True
+            pending[n_pending] = k
+            n_pending += 1
+    return n_pending
+
+
 @njit(cache=True, error_model='numpy', inline='always')
 def _predict_pair(k, x, v, radius, local_time, dynamic, a, b, gravity, has_gravity, min_speed,
                   dt, has_resting, resting_pair, touched, pair_t, listed, pending, n_pending):
@@ -515,6 +608,11 @@ def sweep(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, 
         if round_ == 0 and not has_gravity and not min_speed > 0.0 and not has_resting:
             n_pending = _predict_straight(x, v, radius, local_time, dynamic, a, b, gravity, dt,
                                           pair_t, listed, pending)
+        elif round_ == 0 and has_gravity:
+            n_pending = _predict_falling(0, m, incident, False, seen, round_, x, v, radius,
+                                         local_time, dynamic, a, b, gravity, min_speed, dt,
+                                         has_resting, resting_pair, touched, pair_t, listed,
+                                         pending, 0)
         elif round_ == 0:
             for k in range(m):
                 n_pending = _predict_pair(k, x, v, radius, local_time, dynamic, a, b, gravity,
@@ -528,7 +626,12 @@ def sweep(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, 
                                             first_wall, wall_listed, wall_due)
         for c in range(n_changed):
             p = changed[c]
-            if round_ > 0:
+            if round_ > 0 and has_gravity:
+                n_pending = _predict_falling(start[p], start[p + 1], incident, True, seen,
+                                             round_, x, v, radius, local_time, dynamic, a, b,
+                                             gravity, min_speed, dt, has_resting, resting_pair,
+                                             touched, pair_t, listed, pending, n_pending)
+            elif round_ > 0:
                 for e_ in range(start[p], start[p + 1]):
                     k = incident[e_]
                     if seen[k] == round_:
@@ -539,10 +642,15 @@ def sweep(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, 
                                               has_resting, resting_pair, touched, pair_t,
                                               listed, pending, n_pending)
             if has_walls and dynamic[p]:
-                n_wall_due = _predict_walls(p, x, v, radius, local_time, low, high, dimensions,
-                                            gravity, has_gravity, min_speed, dt, has_resting,
-                                            resting_wall, touched, wall_t, first_wall,
-                                            wall_listed, wall_due, n_wall_due)
+                if has_gravity and _walls_out_of_reach(x, v, radius, local_time, p, low, high,
+                                                       dimensions, gravity, dt):
+                    # Its row of wall_t is read only while it is due.
+                    first_wall[p] = np.inf
+                else:
+                    n_wall_due = _predict_walls(p, x, v, radius, local_time, low, high,
+                                                dimensions, gravity, has_gravity, min_speed, dt,
+                                                has_resting, resting_wall, touched, wall_t,
+                                                first_wall, wall_listed, wall_due, n_wall_due)
         for c in range(n_changed):
             is_changed[changed[c]] = False
         n_changed = 0
