@@ -312,7 +312,7 @@ class SeparationStage(Stage):
         """Say what the stage does."""
         text = ('position projection along N shared by inverse mass (velocities untouched; '
                 f'under gravity {GRAVITY_PASSES} passes, and a lift beyond the step\'s losses '
-                'is paid from the lifted particles\' speed)')
+                'is paid from the lifted particles\' speed, or not made)')
         if self.walls is not None:
             text += ', then back onto wall planes'
         return text
