@@ -147,6 +147,18 @@ def _wall_axis(code):
     return (-2 - code) // 2
 
 
+@njit(cache=True, inline='always')
+def _normal_part(rate, inv_mass, i, j, nx, ny, nz):
+    """Return contact (i, j)'s relative normal rate (velocity or acceleration) and its 1/m sum.
+
+    Positive opens the contact; a wall (j < 0) is static, its N an axis.
+    """
+    if j >= 0:
+        return (_dot(rate[i, 0] - rate[j, 0], rate[i, 1] - rate[j, 1], rate[i, 2] - rate[j, 2],
+                     nx, ny, nz), inv_mass[i] + inv_mass[j])
+    return (nx + ny + nz) * rate[i, _wall_axis(j)], inv_mass[i]
+
+
 @njit(cache=True)
 def _push_wall(v, inv_mass, p, axis, inward, magnitude):
     """Apply a normal impulse increment ``magnitude`` (either sign) from a wall to ``p``.
@@ -187,14 +199,7 @@ def _velocity_sweeps(velocity, inv_mass, m, c_i, c_j, c_normal, tolerance, remov
         for k in range(m):
             i, j = c_i[k], c_j[k]
             nx, ny, nz = c_normal[k, 0], c_normal[k, 1], c_normal[k, 2]
-            if j >= 0:
-                w = inv_mass[i] + inv_mass[j]
-                speed = _dot(velocity[i, 0] - velocity[j, 0], velocity[i, 1] - velocity[j, 1],
-                             velocity[i, 2] - velocity[j, 2], nx, ny, nz)
-            else:
-                axis = _wall_axis(j)
-                w = inv_mass[i]
-                speed = (nx + ny + nz) * velocity[i, axis]
+            speed, w = _normal_part(velocity, inv_mass, i, j, nx, ny, nz)
             if speed == 0.0:
                 continue
             left = max(left, abs(speed))
@@ -203,7 +208,8 @@ def _velocity_sweeps(velocity, inv_mass, m, c_i, c_j, c_normal, tolerance, remov
                 removed[k] += _push_pair(velocity, inv_mass, i, j, nx, ny, nz, magnitude,
                                          -speed)
             else:
-                removed[k] += _push_wall(velocity, inv_mass, i, axis, nx + ny + nz, magnitude)
+                removed[k] += _push_wall(velocity, inv_mass, i, _wall_axis(j), nx + ny + nz,
+                                         magnitude)
         if left <= tolerance:
             break
     info[I_V_LEFT] = left
@@ -253,13 +259,7 @@ def _force_sweeps(accel, inv_mass, m, c_i, c_j, c_normal, force, tolerance, rela
         for k in range(m):
             i, j = c_i[k], c_j[k]
             nx, ny, nz = c_normal[k, 0], c_normal[k, 1], c_normal[k, 2]
-            if j >= 0:
-                w = inv_mass[i] + inv_mass[j]
-                opening = _dot(accel[i, 0] - accel[j, 0], accel[i, 1] - accel[j, 1],
-                               accel[i, 2] - accel[j, 2], nx, ny, nz)
-            else:
-                w = inv_mass[i]
-                opening = (nx + ny + nz) * accel[i, _wall_axis(j)]
+            opening, w = _normal_part(accel, inv_mass, i, j, nx, ny, nz)
             new = max(force[k] - relaxation * opening / w, 0.0)
             change = new - force[k]
             if change == 0.0:

@@ -360,11 +360,7 @@ def _predict_falling(first, last, keys, use_keys, seen, round_, x, v, radius, lo
             t = np.inf
         else:
             t = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, True, min_speed, dt)
-        pair_t[k] = t
-        if t <= dt and not listed[k]:
-            listed[k] = True
-            pending[n_pending] = k
-            n_pending += 1
+        n_pending = _list_if_due(k, t, dt, pair_t, listed, pending, n_pending)
     return n_pending
 
 
@@ -383,6 +379,12 @@ def _predict_pair(k, x, v, radius, local_time, dynamic, a, b, gravity, has_gravi
         t = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, False, 0.0, dt)
     if has_resting and resting_pair[k] and not (touched[i] or touched[j]):
         t = np.inf
+    return _list_if_due(k, t, dt, pair_t, listed, pending, n_pending)
+
+
+@njit(cache=True, inline='always')
+def _list_if_due(k, t, dt, pair_t, listed, pending, n_pending):
+    """Keep pair k's time ``t``; list it once if it is due in the step; return the count."""
     pair_t[k] = t
     if t <= dt and not listed[k]:
         listed[k] = True
