@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from collision_node import load_scene, SceneError, World
-from collision_node.physics.accuracy import parse_accuracy_text
-from collision_node.physics.scene import shipped_scene_names
+from collision_node.physics.model.accuracy import parse_accuracy_text
+from collision_node.physics.model.scene import shipped_scene_names
 
 # The four presets, and batched ordering (the one setting no preset uses).
 PRESETS = {'fast': 'fast', 'balanced': 'balanced', 'accurate': 'accurate', 'exact': 'exact',
