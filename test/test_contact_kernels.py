@@ -20,7 +20,7 @@ import pytest
 
 from collision_node import World
 from collision_node.physics.law import coloring
-from collision_node.physics.stages.solve import contact_kernels
+from collision_node.physics.law import primitives
 from collision_node.physics.model.accuracy import PRESETS
 from collision_node.physics.law.coloring import color_pairs
 from collision_node.physics.law.contact_law import apply_pair_friction, apply_pair_impulses
@@ -61,11 +61,11 @@ def test_kernel_law_equals_vectorised_law_on_one_colour(planar):
     magnitude, removed = np.zeros(i.size), np.zeros(i.size)
     k_tangential, k_lost = [], []
     for k in range(i.size):
-        magnitude[k], _, removed[k] = contact_kernels.pair_impulse(
+        magnitude[k], _, removed[k] = primitives.pair_impulse(
             v_k, inv_mass, i[k], j[k], *normal[k], e[k], tolerance)
     for k in np.flatnonzero(hit):
-        t, loss = contact_kernels._friction(v_k, w_k, inv_mass, radius, i[k], j[k],
-                                            *normal[k], magnitude[k], mu[k], planar)
+        t, loss = primitives.pair_friction(v_k, w_k, inv_mass, radius, i[k], j[k],
+                                           *normal[k], magnitude[k], mu[k], planar)
         k_tangential.append(t)
         k_lost.append(loss)
     np.testing.assert_array_equal(v_k, v_ref)

@@ -11,17 +11,19 @@ from __future__ import annotations
 import time
 from typing import Callable, Optional
 
+from ..law import primitives
 from ..stages.solve import contact_kernels, wall_kernels
 from ..stages.events import event_kernels, resting_kernels
-from ..stages.detection import grid_kernels
+from ..stages.detection import grid_kernels, narrowphase_kernels
+from ..stages.correction import separation_kernels
 from ..stages.sleeping import sleep_kernels
 from . import step_kernels
 from ..stages.swept import swept_kernels
 from .numba_cache import CACHE_DIR
 
 # Each module gives warm_up() (call every kernel once on a tiny problem) and kernels().
-MODULES = (contact_kernels, swept_kernels, sleep_kernels, event_kernels, resting_kernels,
-           grid_kernels, wall_kernels, step_kernels)
+MODULES = (primitives, contact_kernels, narrowphase_kernels, separation_kernels, swept_kernels,
+           sleep_kernels, event_kernels, resting_kernels, grid_kernels, wall_kernels, step_kernels)
 
 _PREPARED = False
 

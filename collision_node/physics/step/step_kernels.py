@@ -110,6 +110,15 @@ def finish_lift(work, inv_mass):
         work[p] = -work[p] / inv_mass[p] if inv_mass[p] > 0.0 else 0.0
 
 
+@njit(cache=True)
+def union_root(parent, p):
+    """Return the root of ``p`` in a union-find forest, halving the path on the way."""
+    while parent[p] != p:
+        parent[p] = parent[parent[p]]
+        p = parent[p]
+    return p
+
+
 def warm_up() -> None:
     """Call each kernel once on a tiny problem (compiles or loads from the cache)."""
     position, velocity = np.zeros((2, 3)), np.ones((2, 3))

@@ -65,7 +65,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..solve.contact_kernels import pay_for_lift, project_overlaps
+from .separation_kernels import pay_for_lift, project_overlaps
 from ...model.effects import Walls
 from ...model.energy import lift
 from ...step.pipeline import Contacts, Stage, StepContext

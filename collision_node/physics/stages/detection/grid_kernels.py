@@ -42,7 +42,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ...step import numba_cache  # noqa: F401 (chooses numba's cache directory first)
-from ..solve.contact_kernels import _dot
+from ...law.primitives import dot3
 
 from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
 
@@ -203,7 +203,7 @@ def build_grid(position, reach, order, class_start):
 def _near(ax, ay, az, bx, by, bz, limit):
     """Return the vectorised ``_near``: |a - b|^2 <= limit^2 (1 + slack), in einsum's order."""
     ox, oy, oz = ax - bx, ay - by, az - bz
-    return _dot(ox, oy, oz, ox, oy, oz) <= limit * limit * (1.0 + PAIR_SLACK)
+    return dot3(ox, oy, oz, ox, oy, oz) <= limit * limit * (1.0 + PAIR_SLACK)
 
 
 @njit(cache=True, inline='always')
@@ -484,7 +484,7 @@ def movers(position, built, extra, half_skin):
     for p in range(n):
         dx, dy, dz = position[p, 0] - built[p, 0], position[p, 1] - built[p, 1], \
             position[p, 2] - built[p, 2]
-        if math.sqrt(_dot(dx, dy, dz, dx, dy, dz)) + extra[p] > half_skin:
+        if math.sqrt(dot3(dx, dy, dz, dx, dy, dz)) + extra[p] > half_skin:
             out[count] = p
             count += 1
     return out[:count]

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..solve.contact_kernels import find_overlaps
+from .narrowphase_kernels import find_overlaps
 from ...step.pipeline import Contacts, Stage, StepContext
 
 BACKENDS = ('kernel', 'numpy')

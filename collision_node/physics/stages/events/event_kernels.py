@@ -65,7 +65,7 @@ import math
 import numpy as np
 
 from ...step import numba_cache  # noqa: F401,I100 (chooses numba's cache directory first)
-from ..solve.contact_kernels import _dot, line_of_action, pair_impulse  # noqa: I100
+from ...law.primitives import dot3, line_of_action, pair_impulse  # noqa: I100
 from numba import njit  # noqa: E402,I100
 
 PAIR, WALL, CELL, REFRESH = 0, 1, 2, 3
@@ -297,22 +297,22 @@ def pair_delay(dx, dy, dz, rx, ry, rz, reach):
     # in raw units (the sign of each test is the scaled one's but at round-off
     # in a grazing pair; a product that underflows to 0 or overflows to NaN
     # takes the long way).
-    raw_b = _dot(dx, dy, dz, rx, ry, rz)
-    raw_c = _dot(dx, dy, dz, dx, dy, dz) - reach * reach
-    if raw_c > 0.0 and (raw_b > 0.0 or raw_b * raw_b - _dot(rx, ry, rz, rx, ry, rz) * raw_c < 0.0):
+    raw_b = dot3(dx, dy, dz, rx, ry, rz)
+    raw_c = dot3(dx, dy, dz, dx, dy, dz) - reach * reach
+    if raw_c > 0.0 and (raw_b > 0.0 or raw_b * raw_b - dot3(rx, ry, rz, rx, ry, rz) * raw_c < 0.0):
         return _INF
     ox, oy, oz = dx / reach, dy / reach, dz / reach
     ux, uy, uz = rx / reach, ry / reach, rz / reach
-    half_b = _dot(ox, oy, oz, ux, uy, uz)
-    c = _dot(ox, oy, oz, ox, oy, oz) - 1.0
-    u2 = _dot(ux, uy, uz, ux, uy, uz)
+    half_b = dot3(ox, oy, oz, ux, uy, uz)
+    c = dot3(ox, oy, oz, ox, oy, oz) - 1.0
+    u2 = dot3(ux, uy, uz, ux, uy, uz)
     disc = half_b * half_b - u2 * c
     approaching = half_b < 0.0
     overlapping = c <= 0.0
     if overlapping and half_b == 0.0:
         # The dot product underflowed: decide with the scale-robust line of action.
         nx, ny, nz, _ = line_of_action(dx, dy, dz, rx, ry, rz)
-        approaching = _dot(nx, ny, nz, rx, ry, rz) < 0.0
+        approaching = dot3(nx, ny, nz, rx, ry, rz) < 0.0
     if not (approaching and (overlapping or disc >= 0.0)):
         return _INF
     if overlapping:
@@ -326,7 +326,7 @@ def _curved_gap(ox, oy, oz, wx, wy, wz, hx, hy, hz, s):
     x = ox + (wx + hx * s) * s
     y = oy + (wy + hy * s) * s
     z = oz + (wz + hz * s) * s
-    return _dot(x, y, z, x, y, z) - 1.0
+    return dot3(x, y, z, x, y, z) - 1.0
 
 
 @njit(cache=True, error_model='numpy', inline='always')
@@ -335,7 +335,7 @@ def _curved_slope(ox, oy, oz, wx, wy, wz, hx, hy, hz, s):
     x = ox + (wx + hx * s) * s
     y = oy + (wy + hy * s) * s
     z = oz + (wz + hz * s) * s
-    return _dot(x, y, z, wx + 2.0 * hx * s, wy + 2.0 * hy * s, wz + 2.0 * hz * s)
+    return dot3(x, y, z, wx + 2.0 * hx * s, wy + 2.0 * hy * s, wz + 2.0 * hz * s)
 
 
 @njit(cache=True, error_model='numpy', inline='always')
@@ -374,14 +374,14 @@ def curved_delay(dx, dy, dz, ux, uy, uz, ax, ay, az, reach, horizon):
     wx, wy, wz = ux / reach, uy / reach, uz / reach
     hx, hy, hz = 0.5 * ax / reach, 0.5 * ay / reach, 0.5 * az / reach
     # Far apart for the whole horizon: |D(s)| >= |o| - |w| s - |h| s^2 > 1.
-    speed = math.sqrt(_dot(wx, wy, wz, wx, wy, wz))
-    curve = math.sqrt(_dot(hx, hy, hz, hx, hy, hz))
-    if math.sqrt(_dot(ox, oy, oz, ox, oy, oz)) - (speed + curve * horizon) * horizon > 1.0:
+    speed = math.sqrt(dot3(wx, wy, wz, wx, wy, wz))
+    curve = math.sqrt(dot3(hx, hy, hz, hx, hy, hz))
+    if math.sqrt(dot3(ox, oy, oz, ox, oy, oz)) - (speed + curve * horizon) * horizon > 1.0:
         return _INF
     # F'/2 = D . D' has derivative |D'|^2 + 2 h . D = A s^2 + B s + C.
-    a_ = 6.0 * _dot(hx, hy, hz, hx, hy, hz)
-    b_ = 6.0 * _dot(wx, wy, wz, hx, hy, hz)
-    c_ = _dot(wx, wy, wz, wx, wy, wz) + 2.0 * _dot(hx, hy, hz, ox, oy, oz)
+    a_ = 6.0 * dot3(hx, hy, hz, hx, hy, hz)
+    b_ = 6.0 * dot3(wx, wy, wz, hx, hy, hz)
+    c_ = dot3(wx, wy, wz, wx, wy, wz) + 2.0 * dot3(hx, hy, hz, ox, oy, oz)
     # Break points of F': 0, the quadratic's roots inside, the horizon (no
     # arrays: the event loop runs without the runtime that would allocate them).
     cut1 = cut2 = horizon
@@ -824,11 +824,11 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, half_g, 
             rx, ry, rz = vel[p, 0] - vel[q, 0], vel[p, 1] - vel[q, 1], vel[p, 2] - vel[q, 2]
             nx, ny, nz, _ = line_of_action(pos[p, 0] - pos[q, 0], pos[p, 1] - pos[q, 1],
                                            pos[p, 2] - pos[q, 2], rx, ry, rz)
-            if varied and -_dot(rx, ry, rz, nx, ny, nz) > 0.0 and not (
+            if varied and -dot3(rx, ry, rz, nx, ny, nz) > 0.0 and not (
                     _keeps_supports(rest, p, nx, ny, nz) and _keeps_supports(rest, q, nx, ny, nz)):
                 return NOT_EXACT
             e = pair_restitution(own_e, has_own, p, q, params[P_PAIR_E])
-            if threshold > 0.0 and -_dot(rx, ry, rz, nx, ny, nz) < threshold:
+            if threshold > 0.0 and -dot3(rx, ry, rz, nx, ny, nz) < threshold:
                 e = 0.0
             if (when - clock[p, C_LAST] < collapse or when - clock[q, C_LAST] < collapse) \
                     and e < 1.0:

@@ -13,7 +13,7 @@ for the whole step:
    speed, either way, is below the resting speed (the contact law's
    restitution threshold: the declared one, or 2 |g| dt under gravity).
 2. **Their normal velocities are set to zero**, by normal impulses
-   (``contact_kernels._push_pair``, the law's pair increment, and its wall
+   (``contact_kernels.push_pair``, the law's pair increment, and its wall
    twin) in over-relaxed sweeps, then plain Gauss-Seidel ones, until no
    resting contact moves faster than ``VELOCITY_TOLERANCE`` of the resting
    speed. Each increment takes kinetic energy out (an increment of w times
@@ -45,7 +45,7 @@ import math
 import numpy as np
 
 from ...step import numba_cache  # noqa: F401,I100 (chooses numba's cache directory first)
-from ..solve.contact_kernels import _dot, _push_pair, line_of_action  # noqa: I100
+from ...law.primitives import dot3, push_pair, line_of_action  # noqa: I100
 from numba import njit  # noqa: E402,I100
 
 # A contact rests when its gap is at most this fraction of r_i + r_j ...
@@ -114,7 +114,7 @@ def collect(position, velocity, inv_mass, radius, cand_i, cand_j, low, high, dim
         tolerance = RESTING_GAP * reach + RESTING_ULPS * _spacing(coordinate)
         if dist - reach > tolerance:
             continue
-        if abs(_dot(rx, ry, rz, nx, ny, nz)) > rest_speed:
+        if abs(dot3(rx, ry, rz, nx, ny, nz)) > rest_speed:
             continue
         c_i[m], c_j[m] = i, j
         c_normal[m, 0], c_normal[m, 1], c_normal[m, 2] = nx, ny, nz
@@ -154,7 +154,7 @@ def _normal_part(rate, inv_mass, i, j, nx, ny, nz):
     Positive opens the contact; a wall (j < 0) is static, its N an axis.
     """
     if j >= 0:
-        return (_dot(rate[i, 0] - rate[j, 0], rate[i, 1] - rate[j, 1], rate[i, 2] - rate[j, 2],
+        return (dot3(rate[i, 0] - rate[j, 0], rate[i, 1] - rate[j, 1], rate[i, 2] - rate[j, 2],
                      nx, ny, nz), inv_mass[i] + inv_mass[j])
     return (nx + ny + nz) * rate[i, _wall_axis(j)], inv_mass[i]
 
@@ -163,7 +163,7 @@ def _normal_part(rate, inv_mass, i, j, nx, ny, nz):
 def _push_wall(v, inv_mass, p, axis, inward, magnitude):
     """Apply a normal impulse increment ``magnitude`` (either sign) from a wall to ``p``.
 
-    Returns the energy it removed, J (``_push_pair`` with a static partner).
+    Returns the energy it removed, J (``push_pair`` with a static partner).
     """
     before = inward * v[p, axis]
     v[p, axis] += inward * (magnitude * inv_mass[p])
@@ -205,8 +205,8 @@ def _velocity_sweeps(velocity, inv_mass, m, c_i, c_j, c_normal, tolerance, remov
             left = max(left, abs(speed))
             magnitude = -relaxation * speed / w
             if j >= 0:
-                removed[k] += _push_pair(velocity, inv_mass, i, j, nx, ny, nz, magnitude,
-                                         -speed)
+                removed[k] += push_pair(velocity, inv_mass, i, j, nx, ny, nz, magnitude,
+                                        -speed)
             else:
                 removed[k] += _push_wall(velocity, inv_mass, i, _wall_axis(j), nx + ny + nz,
                                          magnitude)

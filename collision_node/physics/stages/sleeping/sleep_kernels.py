@@ -16,7 +16,7 @@ import math
 import numpy as np
 
 from ...step import numba_cache  # noqa: F401,I100 (chooses numba's cache directory first)
-from ..solve.contact_kernels import _root  # noqa: I100
+from ...step.step_kernels import union_root  # noqa: I100
 
 from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
 
@@ -70,12 +70,12 @@ def settle_islands(position, velocity, angular, radius, dynamic, asleep, rep, pi
         dy = position[a, 1] - position[b, 1]
         dz = position[a, 2] - position[b, 2]
         if dx * dx + dy * dy + dz * dz <= reach * reach:
-            ra, rb = _root(parent, a), _root(parent, b)
+            ra, rb = union_root(parent, a), union_root(parent, b)
             if ra != rb:
                 parent[max(ra, rb)] = min(ra, rb)
     for p in range(n):
         if asleep[p] and rep[p] >= 0:
-            ra, rb = _root(parent, p), _root(parent, rep[p])
+            ra, rb = union_root(parent, p), union_root(parent, rep[p])
             if ra != rb:
                 parent[max(ra, rb)] = min(ra, rb)
     least = np.full(n, np.inf)
@@ -84,7 +84,7 @@ def settle_islands(position, velocity, angular, radius, dynamic, asleep, rep, pi
     for p in range(n):
         if not dynamic[p]:
             continue
-        c = _root(parent, p)
+        c = union_root(parent, p)
         root[p] = c
         least[c] = min(least[c], still_time[p])
         if not asleep[p]:

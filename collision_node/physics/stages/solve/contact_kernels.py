@@ -27,247 +27,10 @@ import numpy as np
 from ...step import numba_cache  # noqa: F401,I100 (chooses numba's cache directory first)
 from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
 
-from ...model.energy import SPHERE_INERTIA  # noqa: E402
-
-# As friction.py: r^2 m / I of a solid sphere and 1 + that.
-SPIN_FACTOR = 1.0 / SPHERE_INERTIA
-STICK_FACTOR = 1.0 + SPIN_FACTOR
-# Rows of the per-particle loss array the solve returns.
-RESTITUTION, WALLS, FRICTION = 0, 1, 2
-EFFECTS = ('restitution', 'walls', 'friction')
-# The last row sums every booking per particle in the order it happens,
-# starting from the step's losses so far: the same additions in the same
-# order as ``StepContext.book`` makes them in the numpy reference, so the
-# separation stage's budget is bit for bit the reference's.
-BOOKED = len(EFFECTS)
-
-
-@njit(cache=True, inline='always')
-def _dot(ax, ay, az, bx, by, bz):
-    """Return a . b, summed as numpy's einsum('ij,ij->i') does (x + z first, then y).
-
-    The same order of additions keeps the kernel bit-identical to the
-    vectorised law (measured on numpy 2.4: (x + z) + y on every row).
-    """
-    return (ax * bx + az * bz) + ay * by
-
-
-@njit(cache=True)
-def pair_impulse(v, inv_mass, a, b, nx, ny, nz, e, tolerance):
-    """Apply the law's normal impulse to pair (a, b) if it closes faster than ``tolerance``.
-
-    Returns (magnitude N s, approach speed m/s, energy removed J); magnitude
-    0 when the pair did not close fast enough (then nothing changed).
-    """
-    approach = -_dot(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2], nx, ny, nz)
-    if not approach > tolerance:
-        return 0.0, approach, 0.0
-    magnitude, removed = _apply_pair(v, inv_mass, a, b, nx, ny, nz, e, approach)
-    return magnitude, approach, removed
-
-
-@njit(cache=True, inline='always')
-def _apply_pair(v, inv_mass, a, b, nx, ny, nz, e, approach):
-    """Apply the normal impulse to a pair closing at ``approach``; return (N s, J removed)."""
-    w_a, w_b = inv_mass[a], inv_mass[b]
-    magnitude = (1.0 + e) * approach / (w_a + w_b)
-    ka, kb = magnitude * w_a, magnitude * w_b
-    v[a, 0] += ka * nx
-    v[a, 1] += ka * ny
-    v[a, 2] += ka * nz
-    v[b, 0] += -(kb * nx)
-    v[b, 1] += -(kb * ny)
-    v[b, 2] += -(kb * nz)
-    return magnitude, 0.5 * magnitude * approach * (1.0 - e)
-
-
-@njit(cache=True)
-def spin_factor(inv_mass, radius, p):
-    """Return -(r^2 m / I) w / r of particle ``p``: its spin change per unit r x J."""
-    return -(SPIN_FACTOR * inv_mass[p] / radius[p])
-
-
-@njit(cache=True)
-def _friction(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu, planar):
-    """Coulomb friction with spin at one contact (``b`` < 0: a static wall).
-
-    The law of ``friction.py``: the impulse that stops the slip of the
-    contact points, bounded by mu times the normal impulse. Returns
-    (tangential impulse magnitude N s, energy removed J).
-    """
-    f_b = spin_factor(inv_mass, radius, b) if b >= 0 else 0.0
-    return _friction_spun(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu,
-                          planar, spin_factor(inv_mass, radius, a), f_b)
-
-
-@njit(cache=True)
-def _friction_spun(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu, planar,
-                   f_a, f_b):
-    """``_friction`` with the particles' spin factors given (``spin_factor``, the same values).
-
-    A solve computes them once per particle instead of at every visit: the
-    divisions are most of a contact visit's arithmetic.
-    """
-    magnitude, removed, _jx, _jy, _jz = _friction_vector(
-        v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu, planar, f_a, f_b, True)
-    return magnitude, removed
-
-
-@njit(cache=True)
-def _share(inv_mass, a, b):
-    """Return particle a's share of a pair's loss, by inverse mass (``StepContext.book``)."""
-    return inv_mass[a] / (inv_mass[a] + inv_mass[b])
-
-
-@njit(cache=True, inline='always')
-def _book_pair(loss, effect, a, b, removed, share):
-    """Book a pair's loss to its particles, a taking ``share`` (``_share``)."""
-    loss[effect, a] += removed * share
-    loss[BOOKED, a] += removed * share
-    loss[effect, b] += removed * (1.0 - share)
-    loss[BOOKED, b] += removed * (1.0 - share)
-
-
-@njit(cache=True, inline='always')
-def _book(loss, effect, p, removed):
-    """Book a loss to particle ``p``."""
-    loss[effect, p] += removed
-    loss[BOOKED, p] += removed
-
-
-@njit(cache=True, inline='always')
-def _push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach):
-    """Apply a normal impulse increment ``magnitude`` (either sign) to pair (a, b).
-
-    Returns the energy it removed, J: an impulse dP along N changes the
-    kinetic energy by dP times the mean of the normal separating speed before
-    and after it (exact for one impulse), booked negated.
-    """
-    w_a, w_b = inv_mass[a], inv_mass[b]
-    ka, kb = magnitude * w_a, magnitude * w_b
-    v[a, 0] += ka * nx
-    v[a, 1] += ka * ny
-    v[a, 2] += ka * nz
-    v[b, 0] += -(kb * nx)
-    v[b, 1] += -(kb * ny)
-    v[b, 2] += -(kb * nz)
-    before = -approach
-    after = before + (w_a + w_b) * magnitude
-    return -(magnitude * 0.5 * (before + after))
-
-
-@njit(cache=True, inline='always')
-def _friction_acc(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_total, mu, planar,
-                  f_a, f_b, acc_t, row):
-    """Coulomb friction with spin on an accumulated tangential impulse (``b`` < 0: a wall).
-
-    ``acc_t[row]`` is the contact's tangential impulse on ``a`` so far in
-    this solve (warm start included); the new total is the one that stops the
-    slip of the contact points, clamped into the cone ``mu * normal_total``,
-    and only the change is applied. With nothing accumulated yet this is
-    ``_friction_spun`` with ``normal_total`` as the impulse, operation for
-    operation (an isolated impact is unchanged). Returns (|change| N s, J
-    removed): -(dJ . u_t + k |dJ|^2 / 2), the exact work of a tangential
-    impulse on a sphere's contact point.
-    """
-    ox, oy, oz = acc_t[row, 0], acc_t[row, 1], acc_t[row, 2]
-    if ox == 0.0 and oy == 0.0 and oz == 0.0:
-        magnitude, removed, jx, jy, jz = _friction_vector(
-            v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_total, mu, planar, f_a, f_b,
-            True)
-        acc_t[row, 0], acc_t[row, 1], acc_t[row, 2] = jx, jy, jz
-        return magnitude, removed
-    tx, ty, tz, w_sum = _slip(v, ang, inv_mass, radius, a, b, nx, ny, nz, planar)
-    k = STICK_FACTOR * w_sum
-    if not k > 0.0:
-        return 0.0, 0.0
-    # The total that stops the slip, then into the cone.
-    qx, qy, qz = ox - tx / k, oy - ty / k, oz - tz / k
-    # The accumulated impulse lies in this contact's tangent plane up to
-    # rounding; keep it there (the normal may turn a little between steps).
-    qn = _dot(qx, qy, qz, nx, ny, nz)
-    qx, qy, qz = qx - qn * nx, qy - qn * ny, qz - qn * nz
-    if planar:
-        qz = 0.0
-    size = math.sqrt(_dot(qx, qy, qz, qx, qy, qz))
-    bound = mu * max(normal_total, 0.0)
-    if size > bound:
-        scale = bound / size
-        qx, qy, qz = qx * scale, qy * scale, qz * scale
-    jx, jy, jz = qx - ox, qy - oy, qz - oz
-    acc_t[row, 0], acc_t[row, 1], acc_t[row, 2] = qx, qy, qz
-    removed = -(_dot(jx, jy, jz, tx, ty, tz) + 0.5 * k * _dot(jx, jy, jz, jx, jy, jz))
-    _apply_tangential(v, ang, inv_mass, a, b, nx, ny, nz, jx, jy, jz, f_a, f_b)
-    return math.sqrt(_dot(jx, jy, jz, jx, jy, jz)), removed
-
-
-@njit(cache=True, inline='always')
-def _slip(v, ang, inv_mass, radius, a, b, nx, ny, nz, planar):
-    """Return the slip velocity of the contact points (tangent to N) and w_a + w_b.
-
-    ``b`` < 0 is a static wall. The one place the friction kernels take the
-    contact points' relative velocity (spin included) from.
-    """
-    w_a = inv_mass[a]
-    sx, sy, sz = radius[a] * ang[a, 0], radius[a] * ang[a, 1], radius[a] * ang[a, 2]
-    ux, uy, uz = v[a, 0], v[a, 1], v[a, 2]
-    w_sum = w_a
-    if b >= 0:
-        w_sum = w_a + inv_mass[b]
-        sx += radius[b] * ang[b, 0]
-        sy += radius[b] * ang[b, 1]
-        sz += radius[b] * ang[b, 2]
-        ux -= v[b, 0]
-        uy -= v[b, 1]
-        uz -= v[b, 2]
-    ux -= sy * nz - sz * ny
-    uy -= sz * nx - sx * nz
-    uz -= sx * ny - sy * nx
-    un = _dot(ux, uy, uz, nx, ny, nz)
-    tx, ty, tz = ux - un * nx, uy - un * ny, uz - un * nz
-    if planar:
-        tz = 0.0
-    return tx, ty, tz, w_sum
-
-
-@njit(cache=True, inline='always')
-def _apply_tangential(v, ang, inv_mass, a, b, nx, ny, nz, jx, jy, jz, f_a, f_b):
-    """Apply tangential impulse J on ``a`` (-J on ``b`` if b >= 0), with its spin change."""
-    cx, cy, cz = ny * jz - nz * jy, nz * jx - nx * jz, nx * jy - ny * jx
-    w_a = inv_mass[a]
-    v[a, 0] += w_a * jx
-    v[a, 1] += w_a * jy
-    v[a, 2] += w_a * jz
-    ang[a, 0] += f_a * cx
-    ang[a, 1] += f_a * cy
-    ang[a, 2] += f_a * cz
-    if b >= 0:
-        w_b = inv_mass[b]
-        v[b, 0] += -w_b * jx
-        v[b, 1] += -w_b * jy
-        v[b, 2] += -w_b * jz
-        ang[b, 0] += f_b * cx
-        ang[b, 1] += f_b * cy
-        ang[b, 2] += f_b * cz
-
-
-@njit(cache=True)
-def _friction_vector(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu, planar,
-                     f_a, f_b, apply):
-    """``_friction_spun``'s law, also returning the impulse vector (same operations)."""
-    tx, ty, tz, w_sum = _slip(v, ang, inv_mass, radius, a, b, nx, ny, nz, planar)
-    slip = math.sqrt(_dot(tx, ty, tz, tx, ty, tz))
-    k = STICK_FACTOR * w_sum
-    stick = slip / k if (slip > 0.0 and k > 0.0) else 0.0
-    magnitude = min(stick, mu * normal_impulse)
-    if slip > 0.0:
-        jx, jy, jz = -magnitude * (tx / slip), -magnitude * (ty / slip), -magnitude * (tz / slip)
-    else:
-        jx = jy = jz = -magnitude * 0.0
-    removed = magnitude * slip - 0.5 * k * (magnitude * magnitude)
-    if apply:
-        _apply_tangential(v, ang, inv_mass, a, b, nx, ny, nz, jx, jy, jz, f_a, f_b)
-    return math.sqrt(_dot(jx, jy, jz, jx, jy, jz)), removed, jx, jy, jz
+from ...law.primitives import (apply_pair_normal, apply_tangential, BOOKED, book_loss, EFFECTS,
+                               book_pair_loss, dot3, FRICTION, friction_accumulated, loss_share,
+                               pair_friction_spun, push_pair,
+                               RESTITUTION, spin_factor, STICK_FACTOR, tangential_slip, WALLS)
 
 
 @njit(cache=True)
@@ -328,7 +91,7 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
         else:
             continue
         any_hit = True
-        _book(loss, WALLS, p, removed)
+        book_loss(loss, WALLS, p, removed)
         totals[WALLS] += removed
         w_normal[c] += magnitude
         if friction:
@@ -336,13 +99,13 @@ def _solve_wall_plane(v, ang, inv_mass, radius, start, stop, w_index, w_axis, w_
             ny = inward if axis == 1 else 0.0
             nz = inward if axis == 2 else 0.0
             if accumulate:
-                tangential, lost = _friction_acc(v, ang, inv_mass, radius, p, -1, nx, ny, nz,
-                                                 w_acc[c] + w_acc_impact[c], w_mu[c], planar,
-                                                 spin[p], 0.0, w_acc_t, c)
+                tangential, lost = friction_accumulated(
+                    v, ang, inv_mass, radius, p, -1, nx, ny, nz, w_acc[c] + w_acc_impact[c],
+                    w_mu[c], planar, spin[p], 0.0, w_acc_t, c)
             else:
-                tangential, lost = _friction_spun(v, ang, inv_mass, radius, p, -1, nx, ny, nz,
-                                                  magnitude, w_mu[c], planar, spin[p], 0.0)
-            _book(loss, FRICTION, p, lost)
+                tangential, lost = pair_friction_spun(v, ang, inv_mass, radius, p, -1, nx, ny, nz,
+                                                      magnitude, w_mu[c], planar, spin[p], 0.0)
+            book_loss(loss, FRICTION, p, lost)
             totals[FRICTION] += lost
             w_tangential[c] += tangential
     return any_hit
@@ -409,20 +172,20 @@ def _shock_pass(v, inv_mass, dynamic, s_low, s_up, s_out, shock_order, threshold
     for s in range(shock_order.size):
         k, low, up = shock_order[s], s_low[s], s_up[s]
         nx, ny, nz = s_out[s, 0], s_out[s, 1], s_out[s, 2]
-        u_upper = _dot(v[up, 0], v[up, 1], v[up, 2], nx, ny, nz)
-        u_lower = _dot(v[low, 0], v[low, 1], v[low, 2], nx, ny, nz)
+        u_upper = dot3(v[up, 0], v[up, 1], v[up, 2], nx, ny, nz)
+        u_lower = dot3(v[low, 0], v[low, 1], v[low, 2], nx, ny, nz)
         target = min(u_lower, 0.0)
         if not (u_upper < target - 0.0 and u_lower - u_upper < threshold and dynamic[up]):
             continue
         w = inv_mass[up]
         magnitude = (target - u_upper) / w
         px, py, pz = magnitude * nx, magnitude * ny, magnitude * nz
-        removed = -(_dot(v[up, 0], v[up, 1], v[up, 2], px, py, pz)
-                    + 0.5 * w * _dot(px, py, pz, px, py, pz))
+        removed = -(dot3(v[up, 0], v[up, 1], v[up, 2], px, py, pz)
+                    + 0.5 * w * dot3(px, py, pz, px, py, pz))
         v[up, 0] += w * px
         v[up, 1] += w * py
         v[up, 2] += w * pz
-        _book(loss, RESTITUTION, up, removed)
+        book_loss(loss, RESTITUTION, up, removed)
         totals[RESTITUTION] += removed
         pushed[k] += magnitude
         any_push = True
@@ -443,13 +206,13 @@ def _take_back_pairs(v, inv_mass, pi, pj, normal, order, acc, share, summed_norm
             continue
         a, b = pi[k], pj[k]
         nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
-        approach = -_dot(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2], nx, ny, nz)
+        approach = -dot3(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2], nx, ny, nz)
         if not approach < 0.0:
             continue
         magnitude = max(approach / (inv_mass[a] + inv_mass[b]), -acc[k])
-        removed = _push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
+        removed = push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
         acc[k] += magnitude
-        _book_pair(loss, RESTITUTION, a, b, removed, share[k])
+        book_pair_loss(loss, RESTITUTION, a, b, removed, share[k])
         totals[RESTITUTION] += removed
         summed_normal[k] += magnitude
 
@@ -477,21 +240,21 @@ def _take_back_pass(v, inv_mass, dynamic, s_low, s_up, s_out, shock_order, acc, 
         nx, ny, nz = s_out[s, 0], s_out[s, 1], s_out[s, 2]
         if not dynamic[up]:
             continue
-        u_upper = _dot(v[up, 0], v[up, 1], v[up, 2], nx, ny, nz)
-        u_lower = _dot(v[low, 0], v[low, 1], v[low, 2], nx, ny, nz)
+        u_upper = dot3(v[up, 0], v[up, 1], v[up, 2], nx, ny, nz)
+        u_lower = dot3(v[low, 0], v[low, 1], v[low, 2], nx, ny, nz)
         target = max(u_lower, 0.0)
         if not u_upper > target:
             continue
         w = inv_mass[up]
         magnitude = max((target - u_upper) / w, -acc[k])
         px, py, pz = magnitude * nx, magnitude * ny, magnitude * nz
-        removed = -(_dot(v[up, 0], v[up, 1], v[up, 2], px, py, pz)
-                    + 0.5 * w * _dot(px, py, pz, px, py, pz))
+        removed = -(dot3(v[up, 0], v[up, 1], v[up, 2], px, py, pz)
+                    + 0.5 * w * dot3(px, py, pz, px, py, pz))
         v[up, 0] += w * px
         v[up, 1] += w * py
         v[up, 2] += w * pz
         acc[k] += magnitude
-        _book(loss, RESTITUTION, up, removed)
+        book_loss(loss, RESTITUTION, up, removed)
         totals[RESTITUTION] += removed
         pushed[k] += magnitude
         any_taken = True
@@ -508,21 +271,21 @@ def _warm_tangential(v, ang, inv_mass, radius, a, b, nx, ny, nz, bound, planar, 
     impulse; what is applied is booked by its exact work on the slip.
     """
     qx, qy, qz = acc_t[row, 0], acc_t[row, 1], acc_t[row, 2]
-    qn = _dot(qx, qy, qz, nx, ny, nz)
+    qn = dot3(qx, qy, qz, nx, ny, nz)
     qx, qy, qz = qx - qn * nx, qy - qn * ny, qz - qn * nz
     if planar:
         qz = 0.0
-    size = math.sqrt(_dot(qx, qy, qz, qx, qy, qz))
+    size = math.sqrt(dot3(qx, qy, qz, qx, qy, qz))
     if size > bound:
         scale = bound / size
         qx, qy, qz = qx * scale, qy * scale, qz * scale
     acc_t[row, 0], acc_t[row, 1], acc_t[row, 2] = qx, qy, qz
     if qx == 0.0 and qy == 0.0 and qz == 0.0:
         return 0.0
-    tx, ty, tz, w_sum = _slip(v, ang, inv_mass, radius, a, b, nx, ny, nz, planar)
+    tx, ty, tz, w_sum = tangential_slip(v, ang, inv_mass, radius, a, b, nx, ny, nz, planar)
     k = STICK_FACTOR * w_sum
-    removed = -(_dot(qx, qy, qz, tx, ty, tz) + 0.5 * k * _dot(qx, qy, qz, qx, qy, qz))
-    _apply_tangential(v, ang, inv_mass, a, b, nx, ny, nz, qx, qy, qz, f_a, f_b)
+    removed = -(dot3(qx, qy, qz, tx, ty, tz) + 0.5 * k * dot3(qx, qy, qz, qx, qy, qz))
+    apply_tangential(v, ang, inv_mass, a, b, nx, ny, nz, qx, qy, qz, f_a, f_b)
     return removed
 
 
@@ -536,7 +299,7 @@ def _warm_start(v, ang, inv_mass, radius, pi, pj, normal, mu, impact, acc, acc_t
     impulse per contact (0 for a new contact), ``acc_t`` / ``w_acc_t`` its
     tangential one; an impact's entries are cleared (an impact starts from
     nothing, as without warm starting). Each impulse is booked by its own
-    work (``_push_pair``): a warm impulse on a contact that has opened adds
+    work (``push_pair``): a warm impulse on a contact that has opened adds
     energy that is booked as a negative loss, and the sweeps take it back
     (the accumulated impulse is clamped at 0).
     """
@@ -547,15 +310,15 @@ def _warm_start(v, ang, inv_mass, radius, pi, pj, normal, mu, impact, acc, acc_t
             continue
         a, b = pi[k], pj[k]
         nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
-        approach = -_dot(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2], nx, ny, nz)
-        removed = _push_pair(v, inv_mass, a, b, nx, ny, nz, acc[k], approach)
-        _book_pair(loss, RESTITUTION, a, b, removed, share[k])
+        approach = -dot3(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2], nx, ny, nz)
+        removed = push_pair(v, inv_mass, a, b, nx, ny, nz, acc[k], approach)
+        book_pair_loss(loss, RESTITUTION, a, b, removed, share[k])
         totals[RESTITUTION] += removed
         summed_normal[k] += acc[k]
         if friction:
             lost = _warm_tangential(v, ang, inv_mass, radius, a, b, nx, ny, nz, mu[k] * acc[k],
                                     planar, spin[a], spin[b], acc_t, k)
-            _book_pair(loss, FRICTION, a, b, lost, share[k])
+            book_pair_loss(loss, FRICTION, a, b, lost, share[k])
             totals[FRICTION] += lost
         else:
             acc_t[k, 0] = acc_t[k, 1] = acc_t[k, 2] = 0.0
@@ -569,7 +332,7 @@ def _warm_start(v, ang, inv_mass, radius, pi, pj, normal, mu, impact, acc, acc_t
         change = w_acc[c] * inv_mass[p]
         v[p, axis] += inward * change
         removed = -(w_acc[c] * 0.5 * (-approach + (-approach + change)))
-        _book(loss, WALLS, p, removed)
+        book_loss(loss, WALLS, p, removed)
         totals[WALLS] += removed
         w_normal[c] += w_acc[c]
         if friction:
@@ -578,7 +341,7 @@ def _warm_start(v, ang, inv_mass, radius, pi, pj, normal, mu, impact, acc, acc_t
             nz = inward if axis == 2 else 0.0
             lost = _warm_tangential(v, ang, inv_mass, radius, p, -1, nx, ny, nz,
                                     w_mu[c] * w_acc[c], planar, spin[p], 0.0, w_acc_t, c)
-            _book(loss, FRICTION, p, lost)
+            book_loss(loss, FRICTION, p, lost)
             totals[FRICTION] += lost
         else:
             w_acc_t[c, 0] = w_acc_t[c, 1] = w_acc_t[c, 2] = 0.0
@@ -630,7 +393,7 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
     if use_threshold:
         for k in range(m):
             a, b = pi[k], pj[k]
-            impact[k] = -_dot(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2],
+            impact[k] = -dot3(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2],
                               normal[k, 0], normal[k, 1], normal[k, 2]) >= threshold
         for c in range(w_index.size):
             w_impact[c] = -w_inward[c] * v[w_index[c], w_axis[c]] >= threshold
@@ -650,7 +413,7 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
     # not at each of up to ``iterations`` visits (the same values).
     share = np.empty(m)
     for k in range(m):
-        share[k] = _share(inv_mass, pi[k], pj[k])
+        share[k] = loss_share(inv_mass, pi[k], pj[k])
     spin = np.zeros(n)
     if friction:
         for p in range(n):
@@ -678,7 +441,7 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
             nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
             # The closing speed is read once: it decides both whether the pair
             # gets an impulse and, against the threshold, its e.
-            approach = -_dot(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2],
+            approach = -dot3(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2],
                              nx, ny, nz)
             if approach > tolerance:
                 e = rest[k]
@@ -690,15 +453,15 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                     # A bounce reflects the closing speed the impacts made,
                     # never what the warm pushes added to it: with e = 1 that
                     # excess would leave at full speed and add energy.
-                    bounce = min(approach, max(approach + _dot(
+                    bounce = min(approach, max(approach + dot3(
                         warm_dv[a, 0] - warm_dv[b, 0], warm_dv[a, 1] - warm_dv[b, 1],
                         warm_dv[a, 2] - warm_dv[b, 2], nx, ny, nz), 0.0))
                 if bounce < approach:
                     magnitude = (approach + e * bounce) / (inv_mass[a] + inv_mass[b])
-                    removed = _push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
+                    removed = push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
                 else:
-                    magnitude, removed = _apply_pair(v, inv_mass, a, b, nx, ny, nz, e,
-                                                     approach)
+                    magnitude, removed = apply_pair_normal(v, inv_mass, a, b, nx, ny, nz, e,
+                                                           approach)
                 if use_threshold and e > 0.0 and bounce >= strike * threshold:
                     # A static particle never moves, so it passes no shock on.
                     struck[a] = dynamic[a]
@@ -718,24 +481,24 @@ def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, 
                 # contact costs a dot product per sweep; ``_take_back_pairs``
                 # takes back what is left below it after the sweeps.
                 magnitude = max(approach / (inv_mass[a] + inv_mass[b]), -acc[k])
-                removed = _push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
+                removed = push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
                 acc[k] += magnitude
             else:
                 continue
             applied = True
-            _book_pair(loss, RESTITUTION, a, b, removed, share[k])
+            book_pair_loss(loss, RESTITUTION, a, b, removed, share[k])
             totals[RESTITUTION] += removed
             summed_normal[k] += magnitude
             if friction:
                 if accumulate:
-                    tangential, lost = _friction_acc(v, ang, inv_mass, radius, a, b, nx, ny, nz,
-                                                     acc[k] + acc_impact[k], mu[k], planar,
-                                                     spin[a], spin[b], acc_t, k)
+                    tangential, lost = friction_accumulated(
+                        v, ang, inv_mass, radius, a, b, nx, ny, nz, acc[k] + acc_impact[k],
+                        mu[k], planar, spin[a], spin[b], acc_t, k)
                 else:
-                    tangential, lost = _friction_spun(v, ang, inv_mass, radius, a, b, nx, ny,
-                                                      nz, magnitude, mu[k], planar, spin[a],
-                                                      spin[b])
-                _book_pair(loss, FRICTION, a, b, lost, share[k])
+                    tangential, lost = pair_friction_spun(v, ang, inv_mass, radius, a, b, nx, ny,
+                                                          nz, magnitude, mu[k], planar, spin[a],
+                                                          spin[b])
+                book_pair_loss(loss, FRICTION, a, b, lost, share[k])
                 totals[FRICTION] += lost
                 summed_tangential[k] += tangential
         if walls:
@@ -993,251 +756,6 @@ def solve_step(v, ang, position, inv_mass, radius, ids, pi, pj, normal, rest_in,
             new_tangential, new_w_key, new_w_normal, new_w_tangential)
 
 
-@njit(cache=True)
-def line_of_action(ox, oy, oz, rx, ry, rz):
-    """Return (N, |offset|) of one offset, as ``narrowphase.line_of_action`` (same operations).
-
-    The offset is scaled by its largest component first; coincident centres
-    take -(relative velocity) as N, or +x when they do not move apart.
-    """
-    scale = max(abs(ox), abs(oy), abs(oz))
-    if scale != 0.0:
-        sx, sy, sz = ox / scale, oy / scale, oz / scale
-        norm = math.sqrt(_dot(sx, sy, sz, sx, sy, sz))
-        return sx / norm, sy / norm, sz / norm, scale * norm
-    rv_scale = max(abs(rx), abs(ry), abs(rz))
-    if rv_scale > 0.0:
-        ux, uy, uz = rx / rv_scale, ry / rv_scale, rz / rv_scale
-        norm = math.sqrt(_dot(ux, uy, uz, ux, uy, uz))
-        return -(ux / norm), -(uy / norm), -(uz / norm), 0.0
-    return 1.0, 0.0, 0.0, 0.0
-
-
-@njit(cache=True)
-def find_overlaps(position, velocity, radius, inv_mass, ci, cj, out_i, out_j, normal,
-                  penetration):
-    """Keep the candidate pairs that overlap (``narrowphase.find_contacts``); return how many.
-
-    Writes the kept pairs, their normals and penetrations to the front of the
-    output arrays (sized for every candidate), in candidate order.
-    """
-    kept = 0
-    for k in range(ci.size):
-        a, b = ci[k], cj[k]
-        ox = position[a, 0] - position[b, 0]
-        oy = position[a, 1] - position[b, 1]
-        oz = position[a, 2] - position[b, 2]
-        reach = radius[a] + radius[b]
-        # The numpy path's generous prefilter, kept so both keep the same pairs.
-        if not _dot(ox, oy, oz, ox, oy, oz) <= reach * reach * (1.0 + 1e-9):
-            continue
-        if not (inv_mass[a] + inv_mass[b]) > 0.0:
-            continue
-        nx, ny, nz, distance = line_of_action(
-            ox, oy, oz, velocity[a, 0] - velocity[b, 0], velocity[a, 1] - velocity[b, 1],
-            velocity[a, 2] - velocity[b, 2])
-        if not distance < reach:
-            continue
-        out_i[kept], out_j[kept] = a, b
-        normal[kept, 0], normal[kept, 1], normal[kept, 2] = nx, ny, nz
-        penetration[kept] = reach - distance
-        kept += 1
-    return kept
-
-
-@njit(cache=True)
-def _held(position, radius, p, dx, dy, dz, nx, ny, nz, low, high, dimensions):
-    """Say whether particle ``p`` moved by (dx, dy, dz) reaches a wall N points into.
-
-    As ``separation.held_by_walls`` for one particle (N: its push direction).
-    """
-    r = radius[p]
-    moved = (position[p, 0] + dx, position[p, 1] + dy, position[p, 2] + dz)
-    way = (nx, ny, nz)
-    for axis in range(dimensions):
-        x, d = moved[axis], way[axis]
-        if (x <= low[axis] + r and d < 0.0) or (x >= high[axis] - r and d > 0.0):
-            return True
-    return False
-
-
-@njit(cache=True)
-def _separate_pass(position, inv_mass, radius, pi, pj, normal, penetration, active, hold,
-                   low, high, dimensions, push, total, moves):
-    """One Jacobi projection pass over the ``active`` pairs (``separation.separate``).
-
-    Every push is computed from the positions before the pass, summed per
-    particle (all i sides in pair order, then all j sides, as numpy's
-    ``add.at``) and averaged over the pushes that move the particle.
-    """
-    n, m = position.shape[0], pi.size
-    for p in range(n):
-        total[p, 0] = total[p, 1] = total[p, 2] = 0.0
-        moves[p] = 0.0
-    for k in range(m):
-        if not active[k]:
-            continue
-        a, b = pi[k], pj[k]
-        w_a, w_b = inv_mass[a], inv_mass[b]
-        nx, ny, nz, pen = normal[k, 0], normal[k, 1], normal[k, 2], penetration[k]
-        if hold:
-            s = pen / (w_a + w_b)
-            sx, sy, sz = s * nx, s * ny, s * nz
-            held_a = _held(position, radius, a, w_a * sx, w_a * sy, w_a * sz, nx, ny, nz,
-                           low, high, dimensions)
-            held_b = _held(position, radius, b, -(w_b * sx), -(w_b * sy), -(w_b * sz), -nx,
-                           -ny, -nz, low, high, dimensions)
-            w_a, w_b = (0.0 if (held_a and not held_b and w_b > 0.0) else w_a,
-                        0.0 if (held_b and not held_a and w_a > 0.0) else w_b)
-        w_sum = w_a + w_b
-        push[k, 0] = pen * w_a / w_sum
-        push[k, 1] = pen * w_b / w_sum
-        if w_a > 0.0:
-            moves[a] += 1.0
-        if w_b > 0.0:
-            moves[b] += 1.0
-    for k in range(m):
-        if active[k]:
-            f, a = push[k, 0], pi[k]
-            total[a, 0] += f * normal[k, 0]
-            total[a, 1] += f * normal[k, 1]
-            total[a, 2] += f * normal[k, 2]
-    for k in range(m):
-        if active[k]:
-            f, b = push[k, 1], pj[k]
-            total[b, 0] += -(f * normal[k, 0])
-            total[b, 1] += -(f * normal[k, 1])
-            total[b, 2] += -(f * normal[k, 2])
-    for p in range(n):
-        if moves[p] > 0.0:
-            position[p, 0] += total[p, 0] / moves[p]
-            position[p, 1] += total[p, 1] / moves[p]
-            position[p, 2] += total[p, 2] / moves[p]
-
-
-@njit(cache=True)
-def _clamp_inside(position, radius, dynamic, p_axis, p_value, p_inward):
-    """Place dynamic particles found past a wall plane back on it, plane after plane."""
-    for q in range(p_axis.size):
-        axis, plane, inward = p_axis[q], p_value[q], p_inward[q]
-        for p in range(position.shape[0]):
-            if dynamic[p] and inward * (position[p, axis] - plane) < radius[p]:
-                position[p, axis] = plane + inward * radius[p]
-
-
-@njit(cache=True)
-def project_overlaps(position, velocity, inv_mass, radius, dynamic, pi, pj, normal0,
-                     penetration0, passes, hold, walls, low, high, dimensions, p_axis, p_value,
-                     p_inward):
-    """Run the separation stage's projection in place (``SeparationStage._project``).
-
-    ``passes`` Jacobi passes: the first on the narrowphase's normals and
-    penetrations, each later one on the pairs still overlapping, measured
-    again; with ``walls`` the particles are clamped back inside after each
-    pass. ``hold``: a particle its push would take into a wall stays put.
-    """
-    n, m = position.shape[0], pi.size
-    normal = normal0.copy()
-    penetration = penetration0.copy()
-    active = np.ones(m, dtype=np.bool_)
-    push = np.zeros((m, 2))
-    total = np.zeros((n, 3))
-    moves = np.zeros(n)
-    for step in range(passes):
-        if m:
-            if step > 0:
-                overlapping = False
-                for k in range(m):
-                    a, b = pi[k], pj[k]
-                    nx, ny, nz, distance = line_of_action(
-                        position[a, 0] - position[b, 0], position[a, 1] - position[b, 1],
-                        position[a, 2] - position[b, 2], velocity[a, 0] - velocity[b, 0],
-                        velocity[a, 1] - velocity[b, 1], velocity[a, 2] - velocity[b, 2])
-                    normal[k, 0], normal[k, 1], normal[k, 2] = nx, ny, nz
-                    penetration[k] = radius[a] + radius[b] - distance
-                    active[k] = penetration[k] > 0.0
-                    overlapping = overlapping or active[k]
-                if not overlapping and not walls:
-                    return
-            _separate_pass(position, inv_mass, radius, pi, pj, normal, penetration, active,
-                           hold, low, high, dimensions, push, total, moves)
-        if walls:
-            _clamp_inside(position, radius, dynamic, p_axis, p_value, p_inward)
-
-
-@njit(cache=True)
-def _root(parent, p):
-    """Return the root of ``p`` in a union-find forest, halving the path on the way."""
-    while parent[p] != p:
-        parent[p] = parent[parent[p]]
-        p = parent[p]
-    return p
-
-
-@njit(cache=True)
-def pay_for_lift(position, start, velocity, inv_mass, dynamic, pi, pj, added, budget):
-    """Take back what the projection's net lift adds per cluster; return J removed per particle.
-
-    The law of ``SeparationStage._pay_for_lift`` (``position`` is moved back
-    in place where the speed cannot pay); clusters are the connected
-    components of the pairs between two dynamic particles (union-find, the
-    partition ``separation.clusters`` finds), sums per cluster run in
-    particle order as numpy's ``bincount``.
-    """
-    n = position.shape[0]
-    parent = np.arange(n)
-    for k in range(pi.size):
-        a, b = pi[k], pj[k]
-        if dynamic[a] and dynamic[b]:
-            ra, rb = _root(parent, a), _root(parent, b)
-            if ra != rb:
-                parent[max(ra, rb)] = min(ra, rb)
-    cluster = np.empty(n, dtype=np.int64)
-    lifted = np.zeros(n)
-    spent = np.zeros(n)
-    for p in range(n):
-        c = _root(parent, p)
-        cluster[p] = c
-        lifted[c] += added[p]
-        spent[c] += budget[p]
-    raised = np.zeros(n)
-    up = np.zeros(n, dtype=np.bool_)
-    for p in range(n):
-        c = cluster[p]
-        if added[p] > 0.0 and lifted[c] - max(spent[c], 0.0) > 0.0:
-            up[p] = True
-            raised[c] += added[p]
-    removed = np.zeros(n)
-    for p in range(n):
-        if not up[p]:
-            continue
-        c = cluster[p]
-        owed = (lifted[c] - max(spent[c], 0.0)) * added[p] / raised[c]
-        mass = 1.0 / inv_mass[p]
-        mx = position[p, 0] - start[p, 0]
-        my = position[p, 1] - start[p, 1]
-        mz = position[p, 2] - start[p, 2]
-        norm = math.sqrt(mx * mx + my * my + mz * mz)
-        wx, wy, wz = mx / norm, my / norm, mz / norm
-        along = max(_dot(velocity[p, 0], velocity[p, 1], velocity[p, 2], wx, wy, wz), 0.0)
-        taken = min(owed, 0.5 * mass * along * along)
-        slower = math.sqrt(max(along * along - 2.0 * taken / mass, 0.0))
-        change = slower - along
-        velocity[p, 0] += change * wx
-        velocity[p, 1] += change * wy
-        velocity[p, 2] += change * wz
-        removed[p] = taken
-        # What the speed cannot pay is not lifted: the particle goes back along
-        # its push by that fraction of it (positions only, see the stage).
-        unpaid = owed - taken
-        if unpaid > 0.0:
-            back = unpaid / added[p]
-            position[p, 0] -= back * mx
-            position[p, 1] -= back * my
-            position[p, 2] -= back * mz
-    return removed
-
-
 def warm_up() -> None:
     """Call this module's kernels once on a tiny problem (compiles or loads the cache)."""
     from ...law.coloring import greedy_colors
@@ -1267,22 +785,9 @@ def warm_up() -> None:
                one, True, 0.1, 1e-4, 10.0, 4, True, True, True, np.array([1.0, 1.0]),
                np.zeros(0, dtype=np.int64), 2, np.zeros(2), True, 2 ** 31 - 1, key, one,
                np.ones((1, 3)), np.array([3], dtype=np.int64), one, np.ones((1, 3)))
-    # Narrowphase and separation (a pair 1.9 m apart with radii 1 m overlaps).
-    position = np.array([[0.0, 0.0, 0.0], [1.9, 0.0, 0.0]])
-    out_i, out_j = np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64)
-    found_normal, found_penetration = np.zeros((1, 3)), np.zeros(1)
-    find_overlaps(position, v, radius, inv_mass, pi, pj, out_i, out_j, found_normal,
-                  found_penetration)
-    low, high = np.full(3, -10.0), np.full(3, 10.0)
-    start = position.copy()
-    project_overlaps(position, v, inv_mass, radius, dynamic, pi, pj, found_normal,
-                     found_penetration, 2, True, True, low, high, 3, np.zeros(1, dtype=np.int64),
-                     np.full(1, -10.0), np.ones(1))
-    pay_for_lift(position, start, v, inv_mass, dynamic, pi, pj, np.ones(2), np.zeros(2))
 
 
 def kernels() -> list:
     """Return the compiled kernels of this module (for ``kernels.prepare``)."""
     from ...law.coloring import greedy_colors
-    return [solve_contacts, solve_step, greedy_colors, find_overlaps, project_overlaps,
-            pay_for_lift]
+    return [solve_contacts, solve_step, greedy_colors]

@@ -58,7 +58,8 @@ from typing import Optional
 import numpy as np
 
 from ...law import coloring
-from .contact_kernels import FRICTION, RESTITUTION, solve_step, WALLS
+from ...law.primitives import FRICTION, RESTITUTION, WALLS
+from .contact_kernels import solve_step
 from ...law.contact_law import (apply_impulses, apply_pair_friction, apply_pair_impulses,
                                 apply_wall_friction, apply_wall_impulses, pair_coefficient,
                                 record_pairs, record_walls, wall_coefficient)

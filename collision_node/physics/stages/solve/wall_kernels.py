@@ -21,7 +21,7 @@ import math
 import numpy as np
 
 from ...step import numba_cache  # noqa: F401 (chooses numba's cache directory first)
-from .contact_kernels import _friction
+from ...law.primitives import pair_friction
 
 from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
 
@@ -127,8 +127,8 @@ def wall_pass(position, velocity, angular, radius, inv_mass, own_rest, wall_rest
                 nx = sign if ax == 0 else 0.0
                 ny = sign if ax == 1 else 0.0
                 nz = sign if ax == 2 else 0.0
-                tangential, lost = _friction(velocity, angular, inv_mass, radius, p, -1, nx,
-                                             ny, nz, normal_impulse, mu, planar)
+                tangential, lost = pair_friction(velocity, angular, inv_mass, radius, p, -1, nx,
+                                                 ny, nz, normal_impulse, mu, planar)
             floats[count, FRICTION_LOSS] = lost
             floats[count, BACK] = back
             floats[count, NORMAL_IMPULSE] = normal_impulse

@@ -9,7 +9,7 @@ is the earliest at both of its particles (ties by pair order), the
 restitution threshold with its resting rule and 'struck' particles,
 Coulomb friction at the impact, and the drift to the step end. Each
 formula is written in the order of floating-point operations of the numpy
-code (``_dot`` sums as numpy's einsum does), and the impulses come from the
+code (``dot3`` sums as numpy's einsum does), and the impulses come from the
 per-contact law of ``contact_kernels``, so the two paths agree to the bit
 on the cases ``test/test_swept_kernels.py`` runs.
 
@@ -28,7 +28,7 @@ import numpy as np
 from ...step import numba_cache  # noqa: F401 (chooses numba's cache directory first)
 from numba import njit  # noqa: E402 (after the cache directory is chosen)
 
-from ..solve.contact_kernels import _dot, _friction, line_of_action, pair_impulse  # noqa: E402
+from ...law.primitives import dot3, pair_friction, line_of_action, pair_impulse  # noqa: E402
 
 # As paths.BISECTIONS: steps that finish a quartic root the eigenvalues missed.
 BISECTIONS = 60
@@ -62,13 +62,13 @@ def parabola_sphere_time(ox, oy, oz, cx, cy, cz, ax, ay, az, horizon):
     vx, vy, vz = cx * span, cy * span, cz * span
     s2 = span * span
     kx, ky, kz = 0.5 * ax * s2, 0.5 * ay * s2, 0.5 * az * s2
-    ok = _dot(ox, oy, oz, kx, ky, kz)
+    ok = dot3(ox, oy, oz, kx, ky, kz)
     q = np.empty(5)
-    q[0] = _dot(kx, ky, kz, kx, ky, kz)
-    q[1] = 2.0 * _dot(vx, vy, vz, kx, ky, kz)
-    q[2] = _dot(vx, vy, vz, vx, vy, vz) + 2.0 * ok
-    q[3] = 2.0 * _dot(ox, oy, oz, vx, vy, vz)
-    q[4] = _dot(ox, oy, oz, ox, oy, oz) - 1.0
+    q[0] = dot3(kx, ky, kz, kx, ky, kz)
+    q[1] = 2.0 * dot3(vx, vy, vz, kx, ky, kz)
+    q[2] = dot3(vx, vy, vz, vx, vy, vz) + 2.0 * ok
+    q[3] = 2.0 * dot3(ox, oy, oz, vx, vy, vz)
+    q[4] = dot3(ox, oy, oz, ox, oy, oz) - 1.0
     inside = q[4] <= 0.0
     if inside:
         if q[3] < 0.0 or (q[3] == 0.0 and ok < 0.0):
@@ -162,16 +162,16 @@ def pair_time(x, v, radius, local_time, dynamic, a, b, gravity, has_gravity, min
     acc = (acc0, acc1, acc2)
     ox, oy, oz = p[0] / reach, p[1] / reach, p[2] / reach
     cx, cy, cz = u[0] / reach, u[1] / reach, u[2] / reach
-    half_b = _dot(ox, oy, oz, cx, cy, cz)
-    c = _dot(ox, oy, oz, ox, oy, oz) - 1.0
-    u2 = _dot(cx, cy, cz, cx, cy, cz)
+    half_b = dot3(ox, oy, oz, cx, cy, cz)
+    c = dot3(ox, oy, oz, ox, oy, oz) - 1.0
+    u2 = dot3(cx, cy, cz, cx, cy, cz)
     disc = half_b * half_b - u2 * c
     approaching = half_b < 0.0
     overlapping = c <= 0.0
     if overlapping and half_b == 0.0:
         # A subnormal offset underflows the dot product: the scale-robust normal decides.
         nx, ny, nz, _ = line_of_action(p[0], p[1], p[2], u[0], u[1], u[2])
-        approaching = _dot(nx, ny, nz, u[0], u[1], u[2]) < 0.0
+        approaching = dot3(nx, ny, nz, u[0], u[1], u[2]) < 0.0
     delay = np.inf
     if approaching and (overlapping or disc >= 0.0):
         if overlapping:
@@ -192,7 +192,7 @@ def pair_time(x, v, radius, local_time, dynamic, a, b, gravity, has_gravity, min
             wx, wy, wz = cx, cy, cz
             rx, ry, rz = ox + cx * s, oy + cy * s, oz + cz * s
         nx, ny, nz, _ = line_of_action(rx, ry, rz, wx, wy, wz)
-        if -_dot(nx, ny, nz, wx, wy, wz) * reach < min_speed:
+        if -dot3(nx, ny, nz, wx, wy, wz) * reach < min_speed:
             delay = np.inf
     return start + delay
 
@@ -703,7 +703,7 @@ def sweep(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, 
                                            v[i, 1] - v[j, 1], v[i, 2] - v[j, 2])
             e = _coefficient(own_e, has_own_e, i, j, restitution)
             if min_speed > 0.0:
-                closing = _dot(v[j, 0] - v[i, 0], v[j, 1] - v[i, 1], v[j, 2] - v[i, 2],
+                closing = dot3(v[j, 0] - v[i, 0], v[j, 1] - v[i, 1], v[j, 2] - v[i, 2],
                                nx, ny, nz)
                 if closing < min_speed:
                     e = 0.0
@@ -724,8 +724,8 @@ def sweep(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, 
             tangential = 0.0
             if friction:
                 pair_mu = _coefficient(own_mu, has_own_mu, i, j, mu)
-                tangential, lost = _friction(v, ang, inv_mass, radius, i, j, nx, ny, nz,
-                                             magnitude, pair_mu, planar)
+                tangential, lost = pair_friction(v, ang, inv_mass, radius, i, j, nx, ny, nz,
+                                                 magnitude, pair_mu, planar)
                 loss[FRICTION, i] += lost * share
                 loss[FRICTION, j] += lost * (1.0 - share)
                 totals[FRICTION] += lost
@@ -785,9 +785,9 @@ def sweep(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, 
                         nz = inward if axis == 2 else 0.0
                         if friction:
                             wall_mu = _coefficient(own_mu, has_own_mu, p, -1, mu)
-                            tangential, lost = _friction(v, ang, inv_mass, radius, p, -1,
-                                                         nx, ny, nz, magnitude, wall_mu,
-                                                         planar)
+                            tangential, lost = pair_friction(v, ang, inv_mass, radius, p, -1,
+                                                             nx, ny, nz, magnitude, wall_mu,
+                                                             planar)
                             loss[FRICTION, p] += lost
                             totals[FRICTION] += lost
                         counts[1] += 1
