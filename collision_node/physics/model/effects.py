@@ -39,17 +39,12 @@ import numpy as np
 
 from .particles import MAX_COORDINATE
 from .validation import fail, number, quote, reject_unknown_keys, require_mapping, vector
+from ..model.tunables import GRAVITY_THRESHOLD_STEPS
 
 EFFECT_KEYS = ('gravity', 'walls', 'restitution', 'restitution_threshold', 'friction', 'drag')
 MAX_THRESHOLD = 1.0e6      # m/s
 MAX_FRICTION = 1.0e3       # a coefficient past this is almost surely a typing error
 MAX_DRAG = 1.0e30          # kg/s (linear) or kg/m (quadratic)
-
-# Default restitution threshold under gravity, in multiples of |g| dt: the
-# closing speed gravity builds in one or two steps of resting contact is
-# treated as resting (perfectly inelastic), so a resting pile does not
-# micro-bounce.
-GRAVITY_THRESHOLD_STEPS = 2.0
 
 
 @dataclass(frozen=True)
