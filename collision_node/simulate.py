@@ -190,6 +190,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         # Ctrl-C while the scene loads: nothing has run, nothing to keep.
         print('simulate: interrupted before the run started', file=sys.stderr)
         return EXIT_INTERRUPTED
+    except MemoryError as error:
+        # Loading and stepping say where; this is the net for the rest (the
+        # summary or the JSON of a huge world).
+        print(f'simulate: error: {out_of_memory(error, "writing the results")}',
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
 
 
 def _main(argv: Optional[Sequence[str]]) -> int:

@@ -300,3 +300,12 @@ def test_memory_error_while_loading_is_one_line_and_exit_2(monkeypatch, capsys):
     assert main(['oblique_pair', '--steps', '10']) == 2
     assert capsys.readouterr().err.splitlines() == [
         'simulate: error: oblique_pair: out of memory loading the scene (MemoryError)']
+
+
+def test_memory_error_while_writing_the_results_is_one_line_and_exit_2(monkeypatch, capsys):
+    def no_memory(*args, **kwargs):
+        raise MemoryError()
+    monkeypatch.setattr('collision_node.simulate.build_result', no_memory)
+    assert main(['oblique_pair', '--steps', '10']) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        'simulate: error: out of memory writing the results (MemoryError)']
