@@ -283,7 +283,7 @@ def main(args: Optional[list[str]] = None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (SceneError, ParameterException, NameValidationException) as error:
-        # NameValidationException: a remap to a name that is not valid (-r __ns:=a b).
+        # NameValidationException: a name rclpy refuses that rcl's parser let through.
         rclpy.logging.get_logger(NODE_NAME).error(' '.join(str(error).split()))
         return 2
     except MemoryError as error:
