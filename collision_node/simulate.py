@@ -5,7 +5,8 @@ state and statistics as JSON. A bad scene or argument exits with code 2
 and one line on stderr, before any step is taken (``--out`` included).
 Ctrl-C (SIGINT) or SIGTERM stops the run at a step boundary: the summary
 and the JSON of the state reached (``"interrupted": true``) are still
-written, and the exit code is 130.
+written, and the exit code is 130. A world too large for the machine's
+memory (``MemoryError`` while loading or stepping) is one line and exit 2.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from tqdm import tqdm
 from .physics.model.accuracy import parse_accuracy_text
 from .physics.step.kernels import prepare as prepare_kernels
 from .physics.model.scene import load_scene
-from .physics.model.validation import SceneError
+from .physics.model.validation import SceneError, one_line
 from .physics.step.world import NonFiniteStateError, World
 
 # Runs shorter than this never show a progress bar.
@@ -33,12 +34,19 @@ PROGRESS_DELAY_S = 2.0
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
 # More steps than this is a typo or an overflow (1e9 steps of a single
-# particle already take hours), refused before the run.
+# particle already take hours), refused before the run: --steps, and the
+# steps --duration (or the scene's duration) makes at the scene's dt.
 MAX_STEPS = 10 ** 9
 
 
 class UsageError(Exception):
     """A command-line argument the runner cannot accept."""
+
+
+def out_of_memory(error: MemoryError, doing: str) -> str:
+    """Return the one-line report of a ``MemoryError`` met while ``doing``."""
+    detail = one_line(str(error), 80)
+    return f'out of memory {doing} (MemoryError{": " + detail if detail else ""})'
 
 
 class _Parser(argparse.ArgumentParser):
@@ -182,9 +190,16 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         # Ctrl-C while the scene loads: nothing has run, nothing to keep.
         print('simulate: interrupted before the run started', file=sys.stderr)
         return EXIT_INTERRUPTED
+    except MemoryError as error:
+        # Loading and stepping say where; this is the net for the rest (the
+        # summary or the JSON of a huge world).
+        print(f'simulate: error: {out_of_memory(error, "writing the results")}',
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
 
 
 def _main(argv: Optional[Sequence[str]]) -> int:
+    args = None
     try:
         args = build_parser().parse_args(argv)
         if args.steps is not None and args.steps < 0:
@@ -206,6 +221,11 @@ def _main(argv: Optional[Sequence[str]]) -> int:
     except (UsageError, SceneError) as error:
         print(f'simulate: error: {error}', file=sys.stderr)
         return EXIT_BAD_INPUT
+    except MemoryError as error:
+        scene_name = getattr(args, 'scene', 'the scene')
+        print(f'simulate: error: {scene_name}: {out_of_memory(error, "loading the scene")}',
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
     if args.explain:
         print(world.explain())
         return 0
@@ -219,6 +239,11 @@ def _main(argv: Optional[Sequence[str]]) -> int:
         except NonFiniteStateError as error:
             print(f'simulate: error: {scene.name}: {error}', file=sys.stderr)
             return 1
+        except MemoryError as error:
+            doing = f'in step {world.steps + 1} of {steps} ({len(world.state)} particles)'
+            print(f'simulate: error: {scene.name}: {out_of_memory(error, doing)}',
+                  file=sys.stderr)
+            return EXIT_BAD_INPUT
         result = build_result(world, start, wall_seconds)
         if stop.signal is not None:
             result['interrupted'] = True

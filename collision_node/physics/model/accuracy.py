@@ -4,6 +4,9 @@ A scene's ``accuracy`` key (the runner's ``--accuracy`` flag, the node's
 ``accuracy`` parameter) is a preset name or a mapping of settings,
 optionally based on a preset (``{preset: fast, substeps: 2}``); every
 setting not given comes from the preset (``balanced`` if none is named).
+Every numeric setting is bounded (``MAX_SUBSTEPS``, ``MAX_ITERATIONS``,
+``MAX_EVENT_BUDGET``, ``MAX_COLLAPSE_TIME``, ``MAX_SLEEP_TIME``; tabled in
+docs/scenes.md, "Limits"), so no accepted value makes a step endless.
 
 Settings
 --------
@@ -126,6 +129,31 @@ PRESETS: dict[str, AccuracySettings] = {
 DEFAULT_PRESET = 'balanced'
 # Event mode: a step may always take this many events, however few particles.
 MIN_EVENT_BUDGET = 1000
+
+# Bounds of the numeric settings, checked by parse_accuracy (docs/scenes.md,
+# "Limits"). Each setting multiplies the work of a step, so each is held
+# where a step still ends in bounded time and every count fits an int64.
+# Most substeps per step (default 1, accurate 4): each is a whole pass of
+# the pipeline, so 10^9 would never finish a step; a finer split is a
+# smaller dt.
+MAX_SUBSTEPS = 1000
+# Most solver sweeps (or ccd rounds) per (sub)step (default 32, accurate
+# 64): a chain of k touching balls needs k - 1, so 10^4 covers any chain a
+# scene holds in practice; the kernels count sweeps in int64.
+MAX_ITERATIONS = 10_000
+# Most events per particle per step in event mode (default 10): a step may
+# take MAX_EVENT_BUDGET x n events before it falls back, so the budget
+# bounds the step's time, and 4 x budget x n (the loop's chore limit)
+# stays inside int64 for any world up to scene.MAX_SCENE_PARTICLES.
+MAX_EVENT_BUDGET = 10_000
+# Longest collapse_time t_c, s (default 1e-5): longer than a second would
+# make every impact within a second of another elastic.
+MAX_COLLAPSE_TIME = 1.0
+# Longest sleep_time, s (default 0.5): a larger value is almost surely a
+# unit error.
+MAX_SLEEP_TIME = 1e6
+INTEGER_BOUNDS = {'substeps': MAX_SUBSTEPS, 'iterations': MAX_ITERATIONS,
+                  'event_budget': MAX_EVENT_BUDGET}
 # The step solver a too-busy event-mode step falls back to.
 EVENT_FALLBACK = 'accurate'
 
@@ -144,9 +172,9 @@ def parse_accuracy(value: Any, where: str) -> AccuracySettings:
     reject_unknown_keys(value, ['preset'] + names, where)
     base = parse_accuracy(value.get('preset', DEFAULT_PRESET), f'{where}.preset')
     changes: dict[str, Any] = {}
-    for key in ('substeps', 'iterations', 'event_budget'):
+    for key, most in INTEGER_BOUNDS.items():
         if key in value:
-            changes[key] = integer(value[key], f'{where}.{key}', minimum=1)
+            changes[key] = integer(value[key], f'{where}.{key}', minimum=1, maximum=most)
     for key, known in (('mode', MODES), ('ordering', ORDERINGS)):
         if key in value:
             if value[key] not in known:
@@ -160,14 +188,10 @@ def parse_accuracy(value: Any, where: str) -> AccuracySettings:
             changes[key] = value[key]
     if 'collapse_time' in value:
         changes['collapse_time'] = number(value['collapse_time'], f'{where}.collapse_time',
-                                          minimum=0.0, maximum=1.0)
+                                          minimum=0.0, maximum=MAX_COLLAPSE_TIME)
     if 'sleep_time' in value:
         changes['sleep_time'] = parse_sleep_time(value['sleep_time'], f'{where}.sleep_time')
     return replace(base, **changes)
-
-
-# Longest sleep_time accepted, s (a larger value is almost surely a unit error).
-MAX_SLEEP_TIME = 1e6
 
 
 def parse_sleep_time(value: Any, where: str) -> Optional[float]:

@@ -37,14 +37,14 @@ from typing import Any, Optional
 
 import numpy as np
 
-from .particles import MAX_COORDINATE
+from .particles import MAX_COORDINATE, MAX_FRICTION
 from .validation import fail, number, quote, reject_unknown_keys, require_mapping, vector
 from ..model.tunables import GRAVITY_THRESHOLD_STEPS
 
 EFFECT_KEYS = ('gravity', 'walls', 'restitution', 'restitution_threshold', 'friction', 'drag')
 MAX_THRESHOLD = 1.0e6      # m/s
-MAX_FRICTION = 1.0e3       # a coefficient past this is almost surely a typing error
 MAX_DRAG = 1.0e30          # kg/s (linear) or kg/m (quadratic)
+MAX_GRAVITY = 1.0e6        # m/s^2 per component, 10^5 g: more is a unit error
 
 
 @dataclass(frozen=True)
@@ -171,7 +171,7 @@ def parse_effects(value: Any, where: str, dimensions: int) -> Effects:
         walls = parse_walls(value['walls'], f'{where}.walls', dimensions)
     gravity = None
     if 'gravity' in value:
-        gravity = vector(value['gravity'], f'{where}.gravity', dimensions, max_abs=1e6)
+        gravity = vector(value['gravity'], f'{where}.gravity', dimensions, max_abs=MAX_GRAVITY)
     restitution = None
     if 'restitution' in value:
         restitution = number(value['restitution'], f'{where}.restitution', minimum=0.0,
