@@ -25,7 +25,7 @@ from collision_node.physics.model.effects import Effects
 from collision_node.physics.model.generate import MAX_GENERATED, MAX_SEED
 from collision_node.physics.model.guard import parse_text
 from collision_node.physics.model.scene import (MAX_SCENE_PARTICLES, MIN_DT, load_scene,
-                                          parse_scene_text, parse_spawn)
+                                                parse_scene_text, parse_spawn)
 from collision_node.physics.model.validation import SceneError
 from collision_node.simulate import main
 
