@@ -1,8 +1,10 @@
 """Offline runner: ``python -m collision_node.simulate SCENE [options]``.
 
 Runs a scene without ROS, prints a short summary, and writes the final
-state and statistics as JSON. A bad scene or argument exits with code 2
-and one line on stderr, before any step is taken (``--out`` included).
+state and statistics as JSON, and on request pictures of the final state
+and of the energy over time (drawn by ``collision_node.pictures``). A bad
+scene or argument exits with code 2 and one line on stderr, before any
+step is taken (every output path included).
 Ctrl-C (SIGINT) or SIGTERM stops the run at a step boundary: the summary
 and the JSON of the state reached (``"interrupted": true``) are still
 written, and the exit code is 130. A world too large for the machine's
@@ -66,6 +68,12 @@ def build_parser() -> argparse.ArgumentParser:
     length.add_argument('--duration', type=float, help='simulated seconds (default: scene)')
     length.add_argument('--steps', type=int, help='number of steps')
     parser.add_argument('--out', help='write the final state and stats as JSON to this file')
+    parser.add_argument('--snapshot', metavar='FILE.png',
+                        help='draw the final state to scale (x-y plane, walls, static '
+                        'particles grey) into this picture')
+    parser.add_argument('--energy-plot', metavar='FILE.png',
+                        help='plot kinetic and potential energy over time above the losses '
+                        'per effect into this picture')
     parser.add_argument('--explain', action='store_true',
                         help='print the step pipeline and exit')
     parser.add_argument('--quiet', action='store_true', help='no summary on stdout')
@@ -100,11 +108,12 @@ def particle_records(world: World) -> list[dict]:
 
 
 def run(world: World, steps: int, show_progress: bool = True,
-        stop: Optional[Callable[[], bool]] = None) -> float:
+        stop: Optional[Callable[[], bool]] = None,
+        after_step: Optional[Callable[[], None]] = None) -> float:
     """Step ``world`` ``steps`` times; return the wall-clock seconds it took.
 
     ``stop`` is asked before every step; when it answers true the run ends
-    there (a step is never cut in half).
+    there (a step is never cut in half). ``after_step`` is called after each.
     """
     start = time.perf_counter()
     # The bar is fed in small chunks so it shows up (after its delay) even
@@ -116,25 +125,27 @@ def run(world: World, steps: int, show_progress: bool = True,
             if stop is not None and stop():
                 break
             world.step()
+            if after_step is not None:
+                after_step()
             if (done + 1) % chunk == 0:
                 bar.update(chunk)
     return time.perf_counter() - start
 
 
-def check_out(out: str) -> None:
-    """Refuse an ``--out`` target that cannot be written, before any step is run.
+def check_out(out: str, flag: str = '--out') -> None:
+    """Refuse a ``flag`` target (``--out``) that cannot be written, before any step is run.
 
     A device that fails only when written to (``/dev/full``) can only be
     found at the end; :func:`main` reports that after the summary.
     """
     if out == '':
-        raise UsageError('--out: empty file name')
+        raise UsageError(f'{flag}: empty file name')
     path = Path(out)
     if path.is_dir():
-        raise UsageError(f'--out {out}: Is a directory')
+        raise UsageError(f'{flag} {out}: Is a directory')
     parent = path.parent
     if not parent.is_dir():
-        raise UsageError(f'--out {out}: No such file or directory ({parent} is not a '
+        raise UsageError(f'{flag} {out}: No such file or directory ({parent} is not a '
                          'directory)')
     # Try it rather than ask os.access (which says yes to root everywhere):
     # append to an existing file (no truncation), or create and remove.
@@ -145,7 +156,32 @@ def check_out(out: str) -> None:
         if not existed:
             path.unlink()
     except OSError as error:
-        raise UsageError(f'--out {out}: {error.strerror}') from None
+        raise UsageError(f'{flag} {out}: {error.strerror}') from None
+
+
+def check_pictures(args: argparse.Namespace) -> None:
+    """Refuse ``--snapshot``/``--energy-plot`` targets before the run, like ``--out``.
+
+    Also refused: a suffix matplotlib cannot write, and one file named by
+    two outputs (the second would overwrite the first).
+    """
+    asked = (('--snapshot', args.snapshot), ('--energy-plot', args.energy_plot))
+    pictures = [(flag, value) for flag, value in asked if value is not None]
+    if not pictures:
+        return
+    from .pictures import picture_format
+    for flag, value in pictures:
+        check_out(value, flag)
+        try:
+            picture_format(value)
+        except ValueError as error:
+            raise UsageError(f'{flag} {value}: {error}') from None
+    seen: dict[Path, str] = {}
+    for flag, value in ([('--out', args.out)] if args.out is not None else []) + pictures:
+        key = Path(value).resolve()
+        if key in seen:
+            raise UsageError(f'{flag} {value}: also the file of {seen[key]}')
+        seen[key] = flag
 
 
 def steps_to_run(args: argparse.Namespace, duration: float, dt: float) -> int:
@@ -214,6 +250,7 @@ def _main(argv: Optional[Sequence[str]]) -> int:
             raise UsageError(f'--duration must be a finite number >= 0, got {args.duration}')
         if args.out is not None:
             check_out(args.out)
+        check_pictures(args)
         scene = load_scene(args.scene)
         if args.accuracy is not None:
             scene = scene.with_accuracy(parse_accuracy_text(args.accuracy, scene.effects,
@@ -236,11 +273,15 @@ def _main(argv: Optional[Sequence[str]]) -> int:
         return 0
     start = {'kinetic': world.kinetic_energy(), 'momentum': world.momentum(),
              'energy': world.energy()}
-    # The handlers stay until the JSON is written: a second Ctrl-C must not
+    recorder = None
+    if args.energy_plot is not None:
+        from .pictures import EnergyRecorder
+        recorder = EnergyRecorder(world, steps)
+    # The handlers stay until the outputs are written: a second Ctrl-C must not
     # lose what the first one kept.
     with _StopRequest() as stop:
         try:
-            wall_seconds = run(world, steps, stop=stop)
+            wall_seconds = run(world, steps, stop=stop, after_step=recorder)
         except NonFiniteStateError as error:
             print(f'simulate: error: {scene.name}: {error}', file=sys.stderr)
             return 1
@@ -271,7 +312,31 @@ def _main(argv: Optional[Sequence[str]]) -> int:
                 # Checked before the run; a full disk or /dev/full shows only now.
                 print(f'simulate: error: --out {args.out}: {error.strerror}', file=sys.stderr)
                 return EXIT_BAD_INPUT
+        if not write_pictures(args, world, recorder):
+            return EXIT_BAD_INPUT
         return EXIT_INTERRUPTED if stop.signal is not None else 0
+
+
+def write_pictures(args: argparse.Namespace, world: World, recorder: Any) -> bool:
+    """Draw and write the pictures asked for; say whether every one was written."""
+    if args.snapshot is None and recorder is None:
+        return True
+    from .pictures import energy_figure, save_figure, snapshot_figure
+    figures = []
+    if args.snapshot is not None:
+        figures.append(('--snapshot', args.snapshot, lambda: snapshot_figure(world)))
+    if recorder is not None:
+        recorder.finish()
+        figures.append(('--energy-plot', args.energy_plot,
+                        lambda: energy_figure(recorder.series(), world.scene.name)))
+    written = True
+    for flag, path, draw in figures:
+        try:
+            save_figure(draw(), path)
+        except OSError as error:
+            print(f'simulate: error: {flag} {path}: {error.strerror}', file=sys.stderr)
+            written = False
+    return written
 
 
 def build_result(world: World, start: dict, wall_seconds: float) -> dict:

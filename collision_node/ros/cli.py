@@ -62,7 +62,7 @@ def help_text() -> str:
         lines.append(f'  {name} ({kind}, default {default!r}{extra}): {descriptor.description}')
     lines += ['', 'topics and services (relative names follow -r __ns:=/NS):']
     lines += [f'  {name:<22} {direction:<8} {what}' for name, direction, what in TOPICS]
-    lines += ['', 'README.md, section "The ROS 2 node", has the details.']
+    lines += ['', 'docs/node.md has the details.']
     return '\n'.join(lines)
 
 

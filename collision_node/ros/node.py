@@ -3,7 +3,7 @@
 The node owns timing and ROS I/O only: the physics is a core
 :class:`~collision_node.physics.step.world.World`, and every numpy-to-message
 conversion lives in :mod:`msg_adapters`. Topics, QoS and parameters are
-tabled in the README (section "The ROS 2 node").
+tabled in docs/node.md.
 """
 
 from __future__ import annotations
