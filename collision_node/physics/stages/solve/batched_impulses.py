@@ -69,11 +69,12 @@ class BatchedImpulseStage(Stage):
         velocity = np.ascontiguousarray(state.velocity, dtype=float)
         own = (_NO_VALUES if state.restitution is None
                else np.ascontiguousarray(state.restitution, dtype=float))
+        # The records as plain tuples: the compiled dispatcher types those fast.
         result = jacobi_sweeps(
-            Bodies(velocity, _NO_SPIN, np.ascontiguousarray(state.inv_mass, dtype=float),
-                   _NO_VALUES),
-            StepContacts(i, j, normal, _NO_ROWS, _NO_ROWS, _NO_VALUES),
-            Coefficients(own, _NO_VALUES, float(self.restitution), 0.0, 0.0),
+            tuple(Bodies(velocity, _NO_SPIN, np.ascontiguousarray(state.inv_mass, dtype=float),
+                         _NO_VALUES)),
+            tuple(StepContacts(i, j, normal, _NO_ROWS, _NO_ROWS, _NO_VALUES)),
+            tuple(Coefficients(own, _NO_VALUES, float(self.restitution), 0.0, 0.0)),
             int(self.iterations))
         if velocity is not state.velocity:
             state.velocity[...] = velocity

@@ -868,7 +868,24 @@ def _kept(ids, pairs, walls, pair_impulses, wall_impulses, keyed):
 @njit(cache=True)
 def solve_step(bodies, position, ids, contacts, planes, coefficients, settings, cache,
                booked):
-    """Run a whole step's contact solve in one call: set-up, ``solve_contacts``, cache.
+    """Run a whole step's contact solve in one call (``_solve_step``); return ``SolveResult``.
+
+    ``bodies``, ``contacts``, ``planes``, ``coefficients``, ``settings`` and
+    ``cache`` are the records (``Bodies``, ``StepContacts``, ``WallPlanes``,
+    ``Coefficients``, ``SolverSettings``, ``WarmStartCache``) as plain
+    tuples, ``tuple(record)``: numba types a plain tuple argument in its
+    compiled dispatcher but a NamedTuple in Python, tens of microseconds a
+    call.
+    """
+    return _solve_step(Bodies(*bodies), position, ids, StepContacts(*contacts),
+                       WallPlanes(*planes), Coefficients(*coefficients),
+                       SolverSettings(*settings), WarmStartCache(*cache), booked)
+
+
+@njit(cache=True)
+def _solve_step(bodies, position, ids, contacts, planes, coefficients, settings, cache,
+                booked):
+    """Run a whole step's contact solve: set-up, ``solve_contacts``, this solve's cache.
 
     The set-up: the wall contacts (``find_wall_contacts`` at WALL_SLOP of
     the ``planes``), e and mu per contact by the combine rule, the visit
@@ -910,6 +927,17 @@ def solve_step(bodies, position, ids, contacts, planes, coefficients, settings, 
 
 @njit(cache=True)
 def jacobi_sweeps(bodies, contacts, coefficients, iterations):
+    """Solve the pairs batched (``_jacobi_sweeps``); the records as plain tuples.
+
+    ``bodies``, ``contacts`` and ``coefficients`` are ``tuple(record)`` of a
+    ``Bodies``, ``StepContacts`` and ``Coefficients`` (as for ``solve_step``).
+    """
+    return _jacobi_sweeps(Bodies(*bodies), StepContacts(*contacts),
+                          Coefficients(*coefficients), iterations)
+
+
+@njit(cache=True)
+def _jacobi_sweeps(bodies, contacts, coefficients, iterations):
     """Solve the pairs batched: each sweep's impulses from the velocities at its start.
 
     A particle in k approaching contacts of a sweep receives each of their
@@ -1024,9 +1052,9 @@ def warm_up() -> None:
     settings = SolverSettings(True, 0.1, 1e-4, 10.0, 4, True, True, True, 2, True, False)
     cache = WarmStartCache(np.array([1], dtype=np.int64), np.ones(1), np.ones((1, 3)),
                            np.array([3], dtype=np.int64), np.ones(1), np.ones((1, 3)))
-    solve_step(bodies, position, ids, contacts, floor, coefficients, settings, cache,
-               np.zeros(2))
-    jacobi_sweeps(bodies, contacts, coefficients, 4)
+    solve_step(tuple(bodies), position, ids, tuple(contacts), tuple(floor),
+               tuple(coefficients), tuple(settings), tuple(cache), np.zeros(2))
+    jacobi_sweeps(tuple(bodies), tuple(contacts), tuple(coefficients), 4)
 
 
 def kernels() -> list:

@@ -45,6 +45,7 @@ from ...model.tunables import RESIDUAL_FRACTION, SHOCK_PASSES, STRIKE_FACTOR
 from ...step.pipeline import Contacts, Stage, StepContext
 from .contact_kernels import (Coefficients, MAX_CACHED_ID, solve_step, SolverSettings,
                               StepContacts, WarmStartCache)
+from .wall_kernels import WallPlanes
 from .walls import wall_planes
 
 # Orders the kernel visits contacts in: 'pairs' (the broadphase's sorted
@@ -201,12 +202,13 @@ class SequentialImpulseStage(Stage):
             float(self.friction) if friction else 0.0)
         bodies = Bodies(velocity, angular, np.ascontiguousarray(state.inv_mass, dtype=float),
                         np.ascontiguousarray(state.radius, dtype=float))
+        # The records as plain tuples: the compiled dispatcher types those fast.
         result = solve_step(
-            bodies, np.ascontiguousarray(state.position, dtype=float),
+            tuple(bodies), np.ascontiguousarray(state.position, dtype=float),
             np.ascontiguousarray(state.ids, dtype=np.int64),
-            StepContacts(i, j, normal, order, shock_order, height), self._planes(ctx.dimensions),
-            coefficients, settings, self.cache.kept,
-            ctx.losses if ctx.losses is not None else _NO_VALUES)
+            tuple(StepContacts(i, j, normal, order, shock_order, height)),
+            tuple(self._planes(ctx.dimensions)), tuple(coefficients), tuple(settings),
+            tuple(self.cache.kept), ctx.losses if ctx.losses is not None else _NO_VALUES)
         self.cache.adopt(result.cache)
         self.sweeps += int(result.sweeps)
         self.solves += 1
@@ -239,7 +241,7 @@ class SequentialImpulseStage(Stage):
                          wall_impulses.tangential[lo:hi][pushed],
                          np.maximum(wall_impulses.approach[lo:hi][pushed], 0.0))
 
-    def _planes(self, dimensions: int):
+    def _planes(self, dimensions: int) -> WallPlanes:
         """Return the wall planes as the kernel takes them (``WallPlanes``), built once."""
         if self._plane_arrays is None or self._plane_arrays[0] != (self.walls, dimensions):
             planes = [] if self.walls is None else self.walls.planes(dimensions)

@@ -80,6 +80,20 @@ def _grow(floats, ints, count):
 
 @njit(cache=True)
 def wall_pass(bodies, position, planes, coefficients, motion):
+    """Reflect every particle found past a plane (``_wall_pass``); return ``WallRows``.
+
+    ``bodies``, ``planes``, ``coefficients`` and ``motion`` are the records
+    (``Bodies``, ``WallPlanes``, ``WallCoefficients``, ``WallMotion``) as
+    plain tuples, ``tuple(record)``: numba types a plain tuple argument in
+    its compiled dispatcher but a NamedTuple in Python, tens of
+    microseconds a call.
+    """
+    return _wall_pass(Bodies(*bodies), position, WallPlanes(*planes),
+                      WallCoefficients(*coefficients), WallMotion(*motion))
+
+
+@njit(cache=True)
+def _wall_pass(bodies, position, planes, coefficients, motion):
     """Reflect every particle found past a plane, in place; return the rows of what happened.
 
     ``gravity`` counts only with ``has_gravity`` (else g_n = 0.0). Returns
@@ -197,9 +211,10 @@ def warm_up() -> None:
     none = np.zeros(0)
     planes = WallPlanes(np.array([0, 0], dtype=np.int64), np.array([0.0, 1.0]),
                         np.array([1.0, -1.0]), np.zeros(2))
-    wall_pass(Bodies(velocity, np.zeros((2, 3)), np.ones(2), np.full(2, 0.1)), position, planes,
-              WallCoefficients(none, 1.0, none, 0.5),
-              WallMotion(True, False, np.zeros(3), 0.01, 0.0, False))
+    bodies = Bodies(velocity, np.zeros((2, 3)), np.ones(2), np.full(2, 0.1))
+    coefficients = WallCoefficients(none, 1.0, none, 0.5)
+    motion = WallMotion(True, False, np.zeros(3), 0.01, 0.0, False)
+    wall_pass(tuple(bodies), position, tuple(planes), tuple(coefficients), tuple(motion))
 
 
 def kernels() -> list:

@@ -65,7 +65,7 @@ class WallStage(Stage):
         """Keep the planes and the Coulomb coefficient at walls (None: no friction)."""
         self.walls = walls
         self.friction = friction
-        self._planes: dict = {}        # per dimensions: (WallPlanes, [(axis, value, inward)])
+        self._planes: dict = {}  # per dimensions: (tuple(WallPlanes), [(axis, value, inward)])
         # (dt, effects, gravity array, restitution threshold) of the last step.
         self._per_dt: tuple = (None, None, None, 0.0)
 
@@ -74,7 +74,7 @@ class WallStage(Stage):
         planes = self._planes.get(ctx.dimensions)
         if planes is None:
             found = self.walls.planes(ctx.dimensions)
-            planes = (wall_planes(found), found)
+            planes = (tuple(wall_planes(found)), found)
             self._planes[ctx.dimensions] = planes
         s = ctx.state
         gravity = ctx.effects.gravity
@@ -92,8 +92,9 @@ class WallStage(Stage):
             float(self.friction) if friction else 0.0)
         motion = WallMotion(friction, gravity is not None, self._per_dt[2], float(ctx.dt),
                             float(self._per_dt[3]), ctx.dimensions == 2)
-        floats, ints, group_start = wall_pass(bodies, s.position, planes[0], coefficients,
-                                              motion)
+        # The records as plain tuples: the compiled dispatcher types those fast.
+        floats, ints, group_start = wall_pass(tuple(bodies), s.position, planes[0],
+                                              tuple(coefficients), tuple(motion))
         if not ints.shape[0]:
             return
         # Book and record plane by plane, as the vectorised law does: the same
