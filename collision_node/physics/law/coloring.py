@@ -5,14 +5,13 @@ order, takes the lowest colour that neither of its dynamic particles has
 yet; static particles never conflict (their velocity never changes). At
 most ``max_colors`` colours: a pair that finds none free (a particle in
 more contacts than colours, only in dense clusters) is overflow, solved
-one contact at a time after the colours. Unlike the chain batches this
-replaced, the number of colours is bounded by the busiest particle's
-contacts (at most 2 per chain, 3-4 in a 2-D pile, 6 in a hexagonal
-lattice), not by the longest chain of contacts.
+one contact at a time after the colours. The number of colours is bounded
+by the busiest particle's contacts (at most 2 per chain, 3-4 in a 2-D
+pile, 6 in a hexagonal lattice), not by the longest chain of contacts.
 
-The compiled solve (``contact_kernels``) visits contacts one at a time,
-so it needs no colouring; the vectorised solve applies one colour per
-numpy call and is the law's reference the kernel is tested against.
+The compiled solve visits contacts one at a time, so it needs no
+colouring; its ``visit='colours'`` order and the tests' vectorised
+reference (one colour per numpy call) use it.
 """
 
 from __future__ import annotations

@@ -24,7 +24,7 @@ solves, the swept stage of ``ccd``, the event-driven ``exact`` mode):
   (batched sweeps, dense-cluster leftovers, shock passes) their exact work
   per particle, v . P + w |P|^2 / 2 (``apply_impulses``). Never a
   difference of world totals, so a loss is exact also far from the origin.
-- **Impacts**: ``record_pairs`` / ``record_walls`` append what the law
+- **Impacts**: ``record_pairs`` / ``record_walls`` (``model/impacts.py``) append what the law
   resolved to the step's impact log, and do nothing without one.
 
 Everything here is vectorised over contacts (no Python loop per contact).
@@ -41,7 +41,7 @@ from typing import Optional
 import numpy as np
 
 from .friction import apply_pair_friction, apply_wall_friction  # noqa: F401 (the law's)
-from ..model.impacts import ImpactLog, WALL
+from ..model.impacts import contact_points, record_pairs, record_walls  # noqa: F401
 from .impulse import closing_speed
 
 
@@ -220,44 +220,3 @@ def reflect_on_plane(q1: np.ndarray, u1: np.ndarray, g_n: float, dt: float,
             'impact': approach, 'restitution': e, 'back': back,
             'impact_loss_per_mass': 0.5 * (1.0 + e) * (1.0 - e) * approach * approach,
             'settle_loss_per_mass': settle}
-
-
-def contact_points(position: np.ndarray, radius: np.ndarray, i: np.ndarray, j: np.ndarray,
-                   normal: np.ndarray) -> np.ndarray:
-    """Return the contact point of pairs: midway between the two surface points."""
-    return 0.5 * ((position[i] - radius[i, None] * normal)
-                  + (position[j] + radius[j, None] * normal))
-
-
-def record_pairs(log: Optional[ImpactLog], time, position: np.ndarray, radius: np.ndarray,
-                 i: np.ndarray, j: np.ndarray, normal: np.ndarray, normal_impulse,
-                 tangential_impulse, approach) -> None:
-    """Append pair impacts to ``log`` (nothing without a log).
-
-    Each pair is written with i < j and the normal from j to i, whichever
-    order the solver found it in, so every preset records a pair alike.
-    """
-    if log is None or not np.size(i):
-        return
-    swap = i > j
-    first, second = np.where(swap, j, i), np.where(swap, i, j)
-    normal = np.where(swap[:, None], -normal, normal)
-    log.record(time, first, second, contact_points(position, radius, first, second, normal),
-               normal, normal_impulse, tangential_impulse, approach)
-
-
-def record_walls(log: Optional[ImpactLog], time, position: np.ndarray, index: np.ndarray,
-                 axis: int, plane: float, inward: float, normal_impulse, tangential_impulse,
-                 approach) -> None:
-    """Append wall impacts (j = -1) of particles ``index`` at one plane to ``log``.
-
-    The contact point is on the plane, at the particle's other coordinates
-    as they are when recorded.
-    """
-    if log is None or not np.size(index):
-        return
-    normal = np.zeros((np.size(index), 3))
-    normal[:, axis] = inward
-    point = position[index].copy()
-    point[:, axis] = plane
-    log.record(time, index, WALL, point, normal, normal_impulse, tangential_impulse, approach)

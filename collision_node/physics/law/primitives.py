@@ -1,13 +1,17 @@
 """The contact law, compiled: the small functions every kernel calls for one contact.
 
-Pair and wall impulses with inverse masses, Coulomb friction with spin, the
-line of action, and the energy each impulse removes, booked per particle.
-Every solver and preset calls these; none re-derives them.
+Pair and wall impulses with inverse masses, the combine rule, Coulomb
+friction with spin, the line of action, and the energy each impulse
+removes, booked per particle. Every solver and preset calls these; none
+re-derives them. Friction helpers take the particles as one ``Bodies``
+record and a contact's normal, impulse and spin factors as 3- and
+2-tuples (the same floating-point operations as scalar arguments).
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -21,9 +25,18 @@ RESTITUTION, WALLS, FRICTION = 0, 1, 2
 EFFECTS = ('restitution', 'walls', 'friction')
 # The last row sums every booking per particle in the order it happens,
 # starting from the step's losses so far: the same additions in the same
-# order as ``StepContext.book`` makes them in the numpy reference, so the
-# separation stage's budget is bit for bit the reference's.
+# order as ``StepContext.book`` makes them, so the separation stage's
+# budget is bit for bit what per-stage booking gives.
 BOOKED = len(EFFECTS)
+
+
+class Bodies(NamedTuple):
+    """The particles as the contact law reads and changes them (one row per particle)."""
+
+    velocity: np.ndarray          # (n, 3) m/s, changed in place
+    angular_velocity: np.ndarray  # (n, 3) rad/s, changed in place by friction
+    inv_mass: np.ndarray          # (n,) 1/kg, 0 for a static particle
+    radius: np.ndarray            # (n,) m
 
 
 @njit(cache=True, inline='always')
@@ -75,25 +88,25 @@ def spin_factor(inv_mass, radius, p):
 def pair_friction(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu, planar):
     """Coulomb friction with spin at one contact (``b`` < 0: a static wall).
 
-    The law of ``friction.py``: the impulse that stops the slip of the
-    contact points, bounded by mu times the normal impulse. Returns
-    (tangential impulse magnitude N s, energy removed J).
+    The impulse that stops the slip of the contact points, bounded by mu
+    times the normal impulse. Returns (tangential impulse magnitude N s,
+    energy removed J).
     """
-    f_b = spin_factor(inv_mass, radius, b) if b >= 0 else 0.0
-    return pair_friction_spun(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu,
-                              planar, spin_factor(inv_mass, radius, a), f_b)
+    spin_b = spin_factor(inv_mass, radius, b) if b >= 0 else 0.0
+    return pair_friction_spun(Bodies(v, ang, inv_mass, radius), a, b, (nx, ny, nz),
+                              normal_impulse, mu, planar,
+                              (spin_factor(inv_mass, radius, a), spin_b))
 
 
 @njit(cache=True)
-def pair_friction_spun(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu, planar,
-                       f_a, f_b):
-    """``pair_friction`` with the particles' spin factors given (``spin_factor``, the same values).
+def pair_friction_spun(bodies, first, second, normal, normal_impulse, mu, planar, spins):
+    """``pair_friction`` with the particles' ``spin_factor`` values given as ``spins``.
 
     A solve computes them once per particle instead of at every visit: the
     divisions are most of a contact visit's arithmetic.
     """
-    magnitude, removed, _jx, _jy, _jz = friction_vector(
-        v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu, planar, f_a, f_b, True)
+    magnitude, removed, _impulse = friction_vector(bodies, first, second, normal,
+                                                   normal_impulse, mu, planar, spins, True)
     return magnitude, removed
 
 
@@ -141,63 +154,102 @@ def push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach):
 
 
 @njit(cache=True, inline='always')
-def friction_accumulated(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_total, mu, planar,
-                         f_a, f_b, acc_t, row):
-    """Coulomb friction with spin on an accumulated tangential impulse (``b`` < 0: a wall).
+def push_wall(v, inv_mass, p, axis, inward, magnitude, approach):
+    """``push_pair`` against a static axis-aligned wall (N = ``inward`` on ``axis``)."""
+    change = magnitude * inv_mass[p]
+    v[p, axis] += inward * change
+    before = -approach
+    after = before + change
+    return -(magnitude * 0.5 * (before + after))
 
-    ``acc_t[row]`` is the contact's tangential impulse on ``a`` so far in
-    this solve (warm start included); the new total is the one that stops the
-    slip of the contact points, clamped into the cone ``mu * normal_total``,
-    and only the change is applied. With nothing accumulated yet this is
-    ``pair_friction_spun`` with ``normal_total`` as the impulse, operation for
-    operation (an isolated impact is unchanged). Returns (|change| N s, J
-    removed): -(dJ . u_t + k |dJ|^2 / 2), the exact work of a tangential
-    impulse on a sphere's contact point.
+
+@njit(cache=True, inline='always')
+def push_particle(v, inv_mass, p, impulse):
+    """Apply impulse vector ``impulse`` to particle ``p``; return J removed.
+
+    The exact work of the impulse P, -(v . P + w |P|^2 / 2), from the
+    velocity before it.
     """
-    ox, oy, oz = acc_t[row, 0], acc_t[row, 1], acc_t[row, 2]
-    if ox == 0.0 and oy == 0.0 and oz == 0.0:
-        magnitude, removed, jx, jy, jz = friction_vector(
-            v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_total, mu, planar, f_a, f_b,
-            True)
-        acc_t[row, 0], acc_t[row, 1], acc_t[row, 2] = jx, jy, jz
-        return magnitude, removed
-    tx, ty, tz, w_sum = tangential_slip(v, ang, inv_mass, radius, a, b, nx, ny, nz, planar)
-    k = STICK_FACTOR * w_sum
-    if not k > 0.0:
-        return 0.0, 0.0
-    # The total that stops the slip, then into the cone.
-    qx, qy, qz = ox - tx / k, oy - ty / k, oz - tz / k
-    # The accumulated impulse lies in this contact's tangent plane up to
-    # rounding; keep it there (the normal may turn a little between steps).
+    px, py, pz = impulse
+    w = inv_mass[p]
+    removed = -(dot3(v[p, 0], v[p, 1], v[p, 2], px, py, pz)
+                + 0.5 * w * dot3(px, py, pz, px, py, pz))
+    v[p, 0] += w * px
+    v[p, 1] += w * py
+    v[p, 2] += w * pz
+    return removed
+
+
+@njit(cache=True, inline='always')
+def into_cone(impulse, normal, planar, bound):
+    """Return ``impulse`` projected on the tangent plane of ``normal``, clamped to ``bound``.
+
+    In a 2-D scene only its in-plane part is kept.
+    """
+    qx, qy, qz = impulse
+    nx, ny, nz = normal
     qn = dot3(qx, qy, qz, nx, ny, nz)
     qx, qy, qz = qx - qn * nx, qy - qn * ny, qz - qn * nz
     if planar:
         qz = 0.0
     size = math.sqrt(dot3(qx, qy, qz, qx, qy, qz))
-    bound = mu * max(normal_total, 0.0)
     if size > bound:
         scale = bound / size
         qx, qy, qz = qx * scale, qy * scale, qz * scale
+    return qx, qy, qz
+
+
+@njit(cache=True, inline='always')
+def friction_accumulated(bodies, first, second, normal, normal_total, mu, planar, spins,
+                         accumulated, row):
+    """Coulomb friction with spin on an accumulated tangential impulse (``second`` < 0: a wall).
+
+    ``accumulated[row]`` is the contact's tangential impulse on ``first``
+    so far in this solve (warm start included); the new total is the one
+    that stops the slip of the contact points, clamped into the cone
+    ``mu * normal_total``, and only the change is applied. With nothing
+    accumulated yet this is ``pair_friction_spun`` with ``normal_total`` as
+    the impulse, operation for operation (an isolated impact is unchanged).
+    Returns (|change| N s, J removed): -(dJ . u_t + k |dJ|^2 / 2), the
+    exact work of a tangential impulse on a sphere's contact point.
+    """
+    ox, oy, oz = accumulated[row, 0], accumulated[row, 1], accumulated[row, 2]
+    if ox == 0.0 and oy == 0.0 and oz == 0.0:
+        magnitude, removed, (jx, jy, jz) = friction_vector(
+            bodies, first, second, normal, normal_total, mu, planar, spins, True)
+        accumulated[row, 0], accumulated[row, 1], accumulated[row, 2] = jx, jy, jz
+        return magnitude, removed
+    tx, ty, tz, w_sum = tangential_slip(bodies, first, second, normal, planar)
+    k = STICK_FACTOR * w_sum
+    if not k > 0.0:
+        return 0.0, 0.0
+    # The total that stops the slip, then into the cone. The accumulated
+    # impulse lies in this contact's tangent plane up to rounding; keep it
+    # there (the normal may turn a little between steps).
+    qx, qy, qz = into_cone((ox - tx / k, oy - ty / k, oz - tz / k), normal, planar,
+                           mu * max(normal_total, 0.0))
     jx, jy, jz = qx - ox, qy - oy, qz - oz
-    acc_t[row, 0], acc_t[row, 1], acc_t[row, 2] = qx, qy, qz
+    accumulated[row, 0], accumulated[row, 1], accumulated[row, 2] = qx, qy, qz
     removed = -(dot3(jx, jy, jz, tx, ty, tz) + 0.5 * k * dot3(jx, jy, jz, jx, jy, jz))
-    apply_tangential(v, ang, inv_mass, a, b, nx, ny, nz, jx, jy, jz, f_a, f_b)
+    apply_tangential(bodies, first, second, normal, (jx, jy, jz), spins)
     return math.sqrt(dot3(jx, jy, jz, jx, jy, jz)), removed
 
 
 @njit(cache=True, inline='always')
-def tangential_slip(v, ang, inv_mass, radius, a, b, nx, ny, nz, planar):
-    """Return the slip velocity of the contact points (tangent to N) and w_a + w_b.
+def tangential_slip(bodies, first, second, normal, planar):
+    """Return the slip velocity of the contact points (tangent to N) and w_first + w_second.
 
-    ``b`` < 0 is a static wall. The one place the friction kernels take the
-    contact points' relative velocity (spin included) from.
+    ``second`` < 0 is a static wall. The one place the friction kernels
+    take the contact points' relative velocity (spin included) from.
     """
-    w_a = inv_mass[a]
+    v, ang, radius = bodies.velocity, bodies.angular_velocity, bodies.radius
+    nx, ny, nz = normal
+    a, b = first, second
+    w_sum = bodies.inv_mass[a]
     sx, sy, sz = radius[a] * ang[a, 0], radius[a] * ang[a, 1], radius[a] * ang[a, 2]
     ux, uy, uz = v[a, 0], v[a, 1], v[a, 2]
-    w_sum = w_a
     if b >= 0:
-        w_sum = w_a + inv_mass[b]
+        w_sum = w_sum + bodies.inv_mass[b]
         sx += radius[b] * ang[b, 0]
         sy += radius[b] * ang[b, 1]
         sz += radius[b] * ang[b, 2]
@@ -215,31 +267,42 @@ def tangential_slip(v, ang, inv_mass, radius, a, b, nx, ny, nz, planar):
 
 
 @njit(cache=True, inline='always')
-def apply_tangential(v, ang, inv_mass, a, b, nx, ny, nz, jx, jy, jz, f_a, f_b):
-    """Apply tangential impulse J on ``a`` (-J on ``b`` if b >= 0), with its spin change."""
+def apply_tangential(bodies, first, second, normal, impulse, spins):
+    """Apply tangential ``impulse`` J on ``first`` (-J on ``second`` if >= 0), with its spin.
+
+    ``spins``: the two particles' ``spin_factor`` values.
+    """
+    v, ang, inv_mass = bodies.velocity, bodies.angular_velocity, bodies.inv_mass
+    nx, ny, nz = normal
+    jx, jy, jz = impulse
+    spin_a, spin_b = spins
+    a, b = first, second
     cx, cy, cz = ny * jz - nz * jy, nz * jx - nx * jz, nx * jy - ny * jx
     w_a = inv_mass[a]
     v[a, 0] += w_a * jx
     v[a, 1] += w_a * jy
     v[a, 2] += w_a * jz
-    ang[a, 0] += f_a * cx
-    ang[a, 1] += f_a * cy
-    ang[a, 2] += f_a * cz
+    ang[a, 0] += spin_a * cx
+    ang[a, 1] += spin_a * cy
+    ang[a, 2] += spin_a * cz
     if b >= 0:
         w_b = inv_mass[b]
         v[b, 0] += -w_b * jx
         v[b, 1] += -w_b * jy
         v[b, 2] += -w_b * jz
-        ang[b, 0] += f_b * cx
-        ang[b, 1] += f_b * cy
-        ang[b, 2] += f_b * cz
+        ang[b, 0] += spin_b * cx
+        ang[b, 1] += spin_b * cy
+        ang[b, 2] += spin_b * cz
 
 
 @njit(cache=True)
-def friction_vector(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu, planar,
-                    f_a, f_b, apply):
-    """``pair_friction_spun``'s law, also returning the impulse vector (same operations)."""
-    tx, ty, tz, w_sum = tangential_slip(v, ang, inv_mass, radius, a, b, nx, ny, nz, planar)
+def friction_vector(bodies, first, second, normal, normal_impulse, mu, planar, spins, apply):
+    """``pair_friction_spun``'s law, also returning the impulse vector (same operations).
+
+    Returns (magnitude N s, J removed, (jx, jy, jz) on ``first``); the
+    impulse is applied only with ``apply``.
+    """
+    tx, ty, tz, w_sum = tangential_slip(bodies, first, second, normal, planar)
     slip = math.sqrt(dot3(tx, ty, tz, tx, ty, tz))
     k = STICK_FACTOR * w_sum
     stick = slip / k if (slip > 0.0 and k > 0.0) else 0.0
@@ -250,8 +313,8 @@ def friction_vector(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, 
         jx = jy = jz = -magnitude * 0.0
     removed = magnitude * slip - 0.5 * k * (magnitude * magnitude)
     if apply:
-        apply_tangential(v, ang, inv_mass, a, b, nx, ny, nz, jx, jy, jz, f_a, f_b)
-    return math.sqrt(dot3(jx, jy, jz, jx, jy, jz)), removed, jx, jy, jz
+        apply_tangential(bodies, first, second, normal, (jx, jy, jz), spins)
+    return math.sqrt(dot3(jx, jy, jz, jx, jy, jz)), removed, (jx, jy, jz)
 
 
 @njit(cache=True)

@@ -9,6 +9,8 @@ with :meth:`ImpactLog.take`.
 
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
 
 # One impact: when (simulated time, s), who (ids i and j, j = -1 for a
@@ -59,3 +61,44 @@ class ImpactLog:
         taken = np.concatenate(self._chunks) if len(self._chunks) > 1 else self._chunks[0]
         self._chunks = []
         return taken
+
+
+def contact_points(position: np.ndarray, radius: np.ndarray, i: np.ndarray, j: np.ndarray,
+                   normal: np.ndarray) -> np.ndarray:
+    """Return the contact point of pairs: midway between the two surface points."""
+    return 0.5 * ((position[i] - radius[i, None] * normal)
+                  + (position[j] + radius[j, None] * normal))
+
+
+def record_pairs(log: Optional[ImpactLog], time, position: np.ndarray, radius: np.ndarray,
+                 i: np.ndarray, j: np.ndarray, normal: np.ndarray, normal_impulse,
+                 tangential_impulse, approach) -> None:
+    """Append pair impacts to ``log`` (nothing without a log).
+
+    Each pair is written with i < j and the normal from j to i, whichever
+    order the solver found it in, so every preset records a pair alike.
+    """
+    if log is None or not np.size(i):
+        return
+    swap = i > j
+    first, second = np.where(swap, j, i), np.where(swap, i, j)
+    normal = np.where(swap[:, None], -normal, normal)
+    log.record(time, first, second, contact_points(position, radius, first, second, normal),
+               normal, normal_impulse, tangential_impulse, approach)
+
+
+def record_walls(log: Optional[ImpactLog], time, position: np.ndarray, index: np.ndarray,
+                 axis: int, plane: float, inward: float, normal_impulse, tangential_impulse,
+                 approach) -> None:
+    """Append wall impacts (j = -1) of particles ``index`` at one plane to ``log``.
+
+    The contact point is on the plane, at the particle's other coordinates
+    as they are when recorded.
+    """
+    if log is None or not np.size(index):
+        return
+    normal = np.zeros((np.size(index), 3))
+    normal[:, axis] = inward
+    point = position[index].copy()
+    point[:, axis] = plane
+    log.record(time, index, WALL, point, normal, normal_impulse, tangential_impulse, approach)

@@ -1,17 +1,14 @@
 """The walls stage's law, compiled: every plane of a box in one pass over the particles.
 
-``stages.walls`` states the law vectorised, plane after plane
-(``contact_law.reflect_on_plane``, ``wall_coefficient``, the friction of
-``friction.apply_wall_friction``); ``wall_pass`` applies exactly the same
-formulas in the same order of floating-point operations to one particle
-at a time, visiting each particle's planes in the stage's order (a
-particle's result at one plane depends only on its own state, so particle
-by particle is the same as plane by plane). It returns one row per
-particle found past a plane, sorted plane by plane (put-back rows, then
-impacts) and by particle within each, so the stage books the energy and
-records the impacts with the same arrays, in the same order, as the
-vectorised path
-(``test/test_wall_kernels.py`` asserts identical states and bookings).
+``wall_pass`` reflects each particle found past a plane on the step's
+path (the law of ``walls.py``), visiting each particle's planes in the
+stage's order (a particle's result at one plane depends only on its own
+state, so particle by particle is the same as plane by plane). It returns
+one row per particle found past a plane, sorted plane by plane (put-back
+rows, then impacts) and by particle within each, so the stage books the
+energy and records the impacts plane by plane, in the order the vectorised
+reference does (``test/test_wall_kernels.py`` asserts identical states
+and bookings).
 """
 
 from __future__ import annotations
@@ -20,16 +17,55 @@ import math
 
 import numpy as np
 
-from ...step import numba_cache  # noqa: F401 (chooses numba's cache directory first)
-from ...law.primitives import pair_friction
+from typing import NamedTuple
 
+from ...step import numba_cache  # noqa: F401,I100 (chooses numba's cache directory first)
 from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
+
+from ...law.primitives import Bodies, combined_coefficient, pair_friction  # noqa: E402
 
 # Columns of the float rows ``wall_pass`` returns.
 WALLS_LOSS, FRICTION_LOSS, BACK, NORMAL_IMPULSE, TANGENTIAL, APPROACH, POINT = range(7)
 FLOAT_COLUMNS = POINT + 3
 # Columns of the integer rows: plane index, particle, 1 for an impact (0: put back).
 PLANE, PARTICLE, IMPACT = range(3)
+
+
+class WallPlanes(NamedTuple):
+    """Axis-aligned wall planes, in the order the stages visit them."""
+
+    axis: np.ndarray     # (planes,) int64: 0, 1 or 2
+    value: np.ndarray    # (planes,) m: the plane's coordinate on its axis
+    inward: np.ndarray   # (planes,) +1 or -1: the side particles stay on
+    ulps: np.ndarray     # (planes,) m: WALL_ULPS float spacings at the coordinate
+
+
+class WallCoefficients(NamedTuple):
+    """Restitution and friction at the walls (per particle where a particle has its own)."""
+
+    own_restitution: np.ndarray  # (n,) NaN: none; empty when no particle has one
+    restitution: float           # the walls' e
+    own_friction: np.ndarray     # (n,) likewise for mu
+    friction: float              # the walls' mu
+
+
+class WallMotion(NamedTuple):
+    """The step the particles moved along, and how the pass treats it."""
+
+    friction: bool           # Coulomb friction with spin at each impact
+    has_gravity: bool
+    gravity: np.ndarray      # (3,) m/s^2 (read only with has_gravity)
+    dt: float                # s
+    threshold: float         # m/s: the restitution threshold (0: none)
+    planar: bool             # a 2-D scene
+
+
+class WallRows(NamedTuple):
+    """The rows of ``wall_pass``: one per particle past a plane, sorted plane by plane."""
+
+    floats: np.ndarray       # (rows, FLOAT_COLUMNS)
+    ints: np.ndarray         # (rows, 3): PLANE, PARTICLE, IMPACT
+    group_start: np.ndarray  # (2 planes + 1,)
 
 
 @njit(cache=True)
@@ -43,22 +79,36 @@ def _grow(floats, ints, count):
 
 
 @njit(cache=True)
-def wall_pass(position, velocity, angular, radius, inv_mass, own_rest, wall_rest,
-              own_mu, wall_mu, friction, axis, value, inward, has_gravity, gravity, dt,
-              threshold, planar):
+def wall_pass(bodies, position, planes, coefficients, motion):
+    """Reflect every particle found past a plane (``_wall_pass``); return ``WallRows``.
+
+    ``bodies``, ``planes``, ``coefficients`` and ``motion`` are the records
+    (``Bodies``, ``WallPlanes``, ``WallCoefficients``, ``WallMotion``) as
+    plain tuples, ``tuple(record)``: numba types a plain tuple argument in
+    its compiled dispatcher but a NamedTuple in Python, tens of
+    microseconds a call.
+    """
+    return _wall_pass(Bodies(*bodies), position, WallPlanes(*planes),
+                      WallCoefficients(*coefficients), WallMotion(*motion))
+
+
+@njit(cache=True)
+def _wall_pass(bodies, position, planes, coefficients, motion):
     """Reflect every particle found past a plane, in place; return the rows of what happened.
 
-    ``axis``/``value``/``inward``: the planes in the stage's order.
-    ``own_rest``/``own_mu``: per-particle coefficients (NaN: none), or
-    empty arrays when no particle has one. ``gravity`` (3,) counts only
-    ``has_gravity`` (else g_n = 0.0, exactly as the vectorised law). Returns
-    (floats, ints, group_start): rows sorted by plane, then put back
-    before impacts, then particle: plane k's put-back rows at
-    group_start[2 k] .. group_start[2 k + 1] - 1, its impacts from there to
+    ``gravity`` counts only with ``has_gravity`` (else g_n = 0.0). Returns
+    ``WallRows`` sorted by plane, then put back before impacts, then
+    particle: plane k's put-back rows at group_start[2 k] ..
+    group_start[2 k + 1] - 1, its impacts from there to
     group_start[2 k + 2] - 1.
     """
+    velocity, angular, inv_mass, radius = bodies
+    axis, value, inward = planes.axis, planes.value, planes.inward
+    own_rest, own_mu = coefficients.own_restitution, coefficients.own_friction
+    wall_rest, wall_mu = coefficients.restitution, coefficients.friction
+    gravity, dt, threshold = motion.gravity, motion.dt, motion.threshold
     n = position.shape[0]
-    planes = axis.size
+    plane_count = axis.size
     floats = np.empty((64, FLOAT_COLUMNS))
     ints = np.empty((64, 3), dtype=np.int64)
     count = 0
@@ -67,14 +117,14 @@ def wall_pass(position, velocity, angular, radius, inv_mass, own_rest, wall_rest
     # the same test as below). A particle past none stays so: a plane moves
     # only its own particles, along its own axis.
     past = np.zeros(n, dtype=np.bool_)
-    for k in range(planes):
+    for k in range(plane_count):
         ax, plane, sign = axis[k], value[k], inward[k]
         for p in range(n):
             past[p] |= sign * (position[p, ax] - plane) - radius[p] < 0.0
     for p in range(n):
         if not past[p] or not inv_mass[p] > 0.0:      # static (``ParticleState.dynamic``)
             continue
-        for k in range(planes):
+        for k in range(plane_count):
             ax, plane, sign = axis[k], value[k], inward[k]
             gap = sign * (position[p, ax] - plane) - radius[p]
             if not gap < 0.0:
@@ -82,7 +132,7 @@ def wall_pass(position, velocity, angular, radius, inv_mass, own_rest, wall_rest
             if count == floats.shape[0]:
                 floats, ints = _grow(floats, ints, count)
             u1 = sign * velocity[p, ax]
-            g_n = sign * gravity[ax] if has_gravity else 0.0
+            g_n = sign * gravity[ax] if motion.has_gravity else 0.0
             ints[count, PLANE], ints[count, PARTICLE] = k, p
             if not u1 < 0.0:
                 # Put back on the plane without an impact: the lift's energy.
@@ -92,9 +142,7 @@ def wall_pass(position, velocity, angular, radius, inv_mass, own_rest, wall_rest
                 count += 1
                 continue
             ints[count, IMPACT] = 1
-            e = wall_rest
-            if has_rest and not math.isnan(own_rest[p]):
-                e = math.sqrt(own_rest[p] * wall_rest)
+            e = combined_coefficient(own_rest, has_rest, p, -1, wall_rest)
             # reflect_on_plane, one particle (q1 = gap).
             disc = u1 * u1 - 2.0 * g_n * gap
             real = disc >= 0.0
@@ -120,15 +168,13 @@ def wall_pass(position, velocity, angular, radius, inv_mass, own_rest, wall_rest
             position[p, ax] = plane + sign * (gap_out + radius[p])
             floats[count, WALLS_LOSS] = mass * (impact_loss + settle)
             tangential, lost = 0.0, 0.0
-            if friction:
-                mu = wall_mu
-                if has_mu and not math.isnan(own_mu[p]):
-                    mu = math.sqrt(own_mu[p] * wall_mu)
+            if motion.friction:
+                mu = combined_coefficient(own_mu, has_mu, p, -1, wall_mu)
                 nx = sign if ax == 0 else 0.0
                 ny = sign if ax == 1 else 0.0
                 nz = sign if ax == 2 else 0.0
                 tangential, lost = pair_friction(velocity, angular, inv_mass, radius, p, -1, nx,
-                                                 ny, nz, normal_impulse, mu, planar)
+                                                 ny, nz, normal_impulse, mu, motion.planar)
             floats[count, FRICTION_LOSS] = lost
             floats[count, BACK] = back
             floats[count, NORMAL_IMPULSE] = normal_impulse
@@ -140,7 +186,7 @@ def wall_pass(position, velocity, angular, radius, inv_mass, own_rest, wall_rest
             count += 1
     # Plane by plane, and within a plane the put-back rows before the impacts
     # (a stable counting sort on 2 plane + impact: particles stay ascending).
-    groups = 2 * planes
+    groups = 2 * plane_count
     group_start = np.zeros(groups + 1, dtype=np.int64)
     for r in range(count):
         group_start[2 * ints[r, PLANE] + ints[r, IMPACT] + 1] += 1
@@ -155,7 +201,7 @@ def wall_pass(position, velocity, angular, radius, inv_mass, own_rest, wall_rest
         fill[g] += 1
         sorted_f[at] = floats[r]
         sorted_i[at] = ints[r]
-    return sorted_f, sorted_i, group_start
+    return WallRows(sorted_f, sorted_i, group_start)
 
 
 def warm_up() -> None:
@@ -163,10 +209,12 @@ def warm_up() -> None:
     position = np.array([[-0.1, 0.5, 0.0], [0.5, 0.5, 0.0]])
     velocity = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
     none = np.zeros(0)
-    wall_pass(position, velocity, np.zeros((2, 3)), np.full(2, 0.1), np.ones(2), none, 1.0,
-              none, 0.5, True,
-              np.array([0, 0], dtype=np.int64), np.array([0.0, 1.0]), np.array([1.0, -1.0]),
-              False, np.zeros(3), 0.01, 0.0, False)
+    planes = WallPlanes(np.array([0, 0], dtype=np.int64), np.array([0.0, 1.0]),
+                        np.array([1.0, -1.0]), np.zeros(2))
+    bodies = Bodies(velocity, np.zeros((2, 3)), np.ones(2), np.full(2, 0.1))
+    coefficients = WallCoefficients(none, 1.0, none, 0.5)
+    motion = WallMotion(True, False, np.zeros(3), 0.01, 0.0, False)
+    wall_pass(tuple(bodies), position, tuple(planes), tuple(coefficients), tuple(motion))
 
 
 def kernels() -> list:
