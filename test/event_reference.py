@@ -28,7 +28,7 @@ from collision_node.physics.law.paths import entering_time
 from collision_node.physics.step.pipeline import Pipeline, Stage, StepContext
 from collision_node.physics.model.state import ParticleState
 from collision_node.physics.stages.detection.narrowphase import line_of_action
-from collision_node.physics.stages.swept.swept_contacts import pair_impact_times
+from swept_reference import pair_impact_times
 
 PAIR, WALL, CELL = 0, 1, 2
 
