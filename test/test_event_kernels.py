@@ -204,7 +204,7 @@ def test_a_state_changed_between_steps_is_predicted_afresh(field):
     w.step(2)
     stage = w.pipeline.stages[0]
     assert stage._still_valid(w.state)
-    moved = np.flatnonzero(stage.perm != np.arange(len(w.state)))
+    moved = np.flatnonzero(stage.order != np.arange(len(w.state)))
     assert moved.size > 100                   # the cell order is not the world's
     for k in moved[::20]:
         values = getattr(w.state, field)
@@ -231,22 +231,22 @@ def test_heap_keeps_the_earliest_particle_on_top_as_keys_change():
     """Keys rise and fall (many ties): the top is always the least (time, index)."""
     rng = np.random.default_rng(2)
     n = 300
-    clock, _, _, _, heap_key, heap_int = ek.new_arrays(n)
-    clock[:, ek.C_KEY] = rng.integers(0, 50, n).astype(float)
-    ek.heapify(clock, heap_key, heap_int)
+    schedule, heap = ek.new_schedule(n, 0.0), ek.new_heap(n)
+    schedule['next_time'] = rng.integers(0, 50, n).astype(float)
+    ek.heapify(heap, schedule)
     for _ in range(2000):
         p = int(rng.integers(n))
-        clock[p, ek.C_KEY] = float(rng.integers(0, 50)) if rng.random() < 0.9 else math.inf
-        ek.heap_update(clock, heap_key, heap_int, p)
-        order = heap_int[0]
-        np.testing.assert_array_equal(heap_int[1, order], np.arange(n))
-        keys = clock[order, ek.C_KEY]
-        np.testing.assert_array_equal(heap_key, keys)
+        schedule['next_time'][p] = float(rng.integers(0, 50)) if rng.random() < 0.9 else math.inf
+        ek.heap_update(heap, schedule, p)
+        order = heap.particle
+        np.testing.assert_array_equal(heap.slot[order], np.arange(n))
+        keys = schedule['next_time'][order]
+        np.testing.assert_array_equal(heap.key, keys)
         children = np.arange(1, n)
         parents = (children - 1) // 2
         assert np.all((keys[parents] < keys[children])
                       | ((keys[parents] == keys[children]) & (order[parents] < order[children])))
-        top = min(range(n), key=lambda k: (clock[k, ek.C_KEY], k))
+        top = min(range(n), key=lambda k: (schedule['next_time'][k], k))
         assert order[0] == top
 
 

@@ -121,6 +121,11 @@ PARTICLES_PER_CELL = 0.25
 # Steps in a row that go straight to the step solver after fallbacks, at most.
 MAX_FALLBACK_HOLD = 63
 
+# Pair impacts a particle's candidate list holds: one more drops the latest
+# and schedules a fresh prediction of the particle at its time (nothing is
+# lost; a longer list means fewer refreshes and longer scans per event).
+CANDIDATES = 8
+
 # Slots of the cell table per particle, at most (an open scene that spreads
 # out shares slots between far cells; the neighbour query tells them apart).
 SLOTS_PER_PARTICLE = 8

@@ -1,77 +1,34 @@
 """Exact event-driven mode (``mode: event``, preset ``exact``).
 
 Between impacts every particle moves on a closed-form path,
-x(t) = x0 + v0 t + g t^2 / 2, so the world can jump from impact to impact
-instead of stepping:
+x(t) = x0 + v0 t + g t^2 / 2, so the world jumps from impact to impact
+instead of stepping: impact times and post-impact states are exact to
+round-off, and the velocity update is the one contact law's (impulse along
+the line of action, the combine rule, e = 0 below the restitution
+threshold, walls, losses from the impulses, impacts recorded at their time).
 
-- two particles share the same g, so their relative motion is a straight
-  line and their impact time is the smaller root of |d + u s| = r1 + r2
-  (the same quadratic as ``swept_contacts.pair_impact_times``);
-- a wall is reached when a quadratic in s (the gap to the wall) falls
-  to zero; the root is taken in its cancellation-free form.
-
-Impact times and post-impact states are therefore exact to round-off; the
-velocity update is the one contact law's (``contact_law``): the lecture's
-impulse along the line of action at contact, per-particle restitution by
-the combine rule, e = 0 below the restitution threshold, the wall as a
-side of w = 0, losses from the impulses, impacts recorded at their time.
-
-Bookkeeping: the stage keeps its own copy of the particles, in the order
-of their cells (neighbours near in memory), each at its own reference
-time. Each particle holds its next wall event, its next cell crossing and
-a short list of predicted pair impacts, each stamped with the partner's
-change counter (a partner that changed since is dropped when it comes up:
-lazy invalidation); a heap of the particles orders them by their earliest
-event. Neighbours come from a hash grid of cells at least one contact
-diameter wide (``PARTICLES_PER_CELL`` on average); crossing a cell is
-itself an event. An impact re-predicts its one or two particles against
-the particles of the 3^d neighbouring cells; a crossing changes no path
-and predicts the particle against the newly entered layer of 3^(d-1)
-cells only. At the end of each step every particle is brought to the
-step's end time and written to the world's state, so that state is a
-snapshot like in step mode; a step handed to the fallback leaves it
-untouched. The loop itself (grid, heap, predictions, impacts) runs
-compiled, one call per step (``collision_node.physics.stages.events.event_kernels``);
-this stage owns its arrays between steps and the rules around it
-(rebuild, fallback, bookings, the impact log). ``events`` counts what the
-loop took: impacts, cell crossings and wall visits without an impact;
-``impacts`` and ``crossings`` count the first two.
+The loop (grid, heap, predictions, impacts) runs compiled, one call per step
+(``event_kernels``); this stage owns its records between steps, in the order
+of the particles' cells (neighbours near in memory), and the rules around
+the loop: when to rebuild, when to fall back, what to book and record. At
+the end of each step every particle is brought to the step's end and
+written to the world's state, a snapshot as in step mode.
 
 Inelastic collapse (infinitely many impacts in finite time when e < 1)
 without gravity is stopped with the TC model: an impact within
-``collapse_time`` (t_c) of either particle's previous impact is elastic.
+``collapse_time`` of either particle's previous impact is elastic.
 
-Resting contact under gravity: a particle resting on a wall or on others
-would meet them again at once with zero speed, again and again (the TC
-model would make it hop every t_c, hundreds of events a step, adding
-energy). So at the start of every step under gravity the stage finds the
-resting contacts (touching, normal speed below the restitution threshold:
-the declared one, or 2 |g| dt), sets their normal speeds to zero (the
-energy this takes is booked to their contacts) and solves their
-frictionless support forces (``resting_kernels``). A particle they hold
-(a supported one) moves for the step with its own constant acceleration
-(g plus its support forces over its mass: 0 in a column or a packed pile
-at rest) and its resting contacts are not predicted; a pair whose
-accelerations differ meets at the first root of a quartic
-(``event_kernels.curved_delay``). Supports are held for the step: exact
-for a cluster at rest, first order in dt for one that slides. An impact
-that would change a support's normal speed (a ball dropped on a resting
-pile, say) is what this cannot do exactly, and so is an event in the
-collapse regime that the TC model would alter under gravity (e < 1, or a
-particle pushed into a wall with about no speed) and a step that needs
-more events than its budget (``event_budget`` per particle, at least
-``MIN_EVENT_BUDGET``: a dense cluster, say). Such a step is rolled back
-(state and counters; the resting contacts' zeroed speeds stay, with their
-bookings) and solved by the ``accurate`` step solver instead, counted in
-``fallback_steps``; after k fallbacks in a row the next 2^k - 1 steps (at
-most ``MAX_FALLBACK_HOLD``) go straight to the step solver before event
-mode is tried again. A particle struck sideways while it rests on walls
-only (a ball rolling on a floor) keeps its supports: that impact is exact.
-
-Static particles (mass .inf) under gravity do not fall: every step under
-gravity with one gives each particle its own acceleration (0 for a static
-one), so a falling particle meets a static one at a quartic's root, and a
-particle resting on a static one is supported like one on a wall.
+Resting contact under gravity cannot be stepped through event by event.
+So each step under gravity first finds the resting contacts, zeroes their
+normal speeds (booking the energy) and solves their support forces
+(``resting_kernels``); a supported particle moves for the step with its own
+constant acceleration and its resting contacts are not predicted. Static
+particles (mass inf) get acceleration 0 the same way. A step the loop
+cannot do exactly (an impact that would change a support's normal speed, a
+collapsing bounce under gravity, more events than ``event_budget`` per
+particle) is rolled back and solved by the ``EVENT_FALLBACK`` step solver,
+counted in ``fallback_steps``; after k fallbacks in a row the next 2^k - 1
+steps (at most ``MAX_FALLBACK_HOLD``) go straight to the step solver.
 
 Scenes with an effect other than particles, walls, restitution and gravity
 are refused (:func:`collision_node.physics.model.accuracy.check_event_mode`).
@@ -97,7 +54,7 @@ from ...model.tunables import (ACCELERATION_TOLERANCE, MAX_FALLBACK_HOLD, PARTIC
 
 # What the loop is handed when it records no impacts and books no losses
 # (never written: not worth fresh arrays every step).
-_NO_RECORDS = (np.empty((0, ek.RECORD_COLUMNS)), np.empty((0, 2), dtype=np.int64))
+_NO_IMPACTS = ek.new_impact_buffer(0)
 _NO_LOSSES = np.zeros(0)
 
 
@@ -144,11 +101,11 @@ class EventDrivenStage(Stage):
         self._build_fallback = fallback
         self._fallback_streak = 0
         self._hold = 0
-        # Resting contact (under gravity): this step's accelerations and
-        # supports in the world's order (None: nobody is supported), whether
-        # the last step had any, and the last step's partners and forces
-        # (world indices; the next solve's warm start). Steps with supports.
-        self._supports: Optional[tuple] = None
+        # Resting contact (under gravity): this step's supports in the world's
+        # order (None: nobody is supported), whether the last step had any, and
+        # the last step's partners and forces (world indices; the next solve's
+        # warm start). Steps with supports.
+        self._supports: Optional[rk.Supports] = None
         self._varied_last = False
         self._old_partner = np.full((0, rk.PARTNERS), -1, dtype=np.int64)
         self._old_force = np.zeros((0, rk.PARTNERS))
@@ -157,64 +114,54 @@ class EventDrivenStage(Stage):
     # -- bookkeeping -------------------------------------------------------
 
     def _rebuild(self, state: ParticleState, dimensions: int, end: float) -> None:
-        """Set up clocks, grid and predictions for ``state`` at ``self.time`` (step to ``end``)."""
+        """Set up the records for ``state`` at ``self.time`` (the step ends at ``end``)."""
         n = len(state)
         self._state = state
         self.dims = dimensions
         self.cell_size = self._choose_cell_size(state, dimensions) if n else 1.0
-        # Columns: the cell's coordinates, then its slot's in the table.
-        cell = np.zeros((n, 6), dtype=np.int64)
+        cell = np.zeros((n, 3), dtype=np.int64)
         cell[:, :dimensions] = np.floor(state.position[:, :dimensions] / self.cell_size)
         # The stage's own copy of the particles, in cell order so that
         # neighbours are near in memory (the loop is bound by memory, not by
-        # arithmetic): stage particle k is the world's perm[k]. The loop moves
+        # arithmetic): stage particle k is the world's order[k]. The loop moves
         # it lazily and publishes to the world's arrays only at a step's end,
         # so a step handed to the fallback leaves the world's state untouched.
-        self.perm = np.lexsort((cell[:, 2], cell[:, 1], cell[:, 0])).astype(np.int64)
-        self.cell = cell[self.perm]
-        self.position = state.position[self.perm]
-        self.velocity = state.velocity[self.perm]
-        self.inv_mass = state.inv_mass[self.perm]
-        self.radius = state.radius[self.perm]
-        (self.clock, self.book, self.cand_time, self.cand_int, self.heap_key,
-         self.heap_int) = ek.new_arrays(n)
-        self.clock[:, ek.C_REF] = self.time
-        self.table = self._table_shape(n, dimensions)
-        self.cell[:, 3:] = self.cell[:, :3] % self.table
-        slots = int(np.prod(self.table))
-        self.head = np.full(slots, -1, dtype=np.int64)
-        self.occupancy = np.zeros(slots, dtype=np.int64)
-        self.next = np.full(n, -1, dtype=np.int64)
-        self.previous = np.full(n, -1, dtype=np.int64)
-        self.meta = np.zeros(ek.META_SIZE, dtype=np.int64)
-        self.low, self.high = self.low_walls, self.high_walls
+        self.order = np.lexsort((cell[:, 2], cell[:, 1], cell[:, 0])).astype(np.int64)
         own = state.restitution
-        self.own_e = np.full(n, np.nan) if own is None else np.asarray(own, float)[self.perm]
-        self.params = np.array([self.collapse_time, self.threshold, self.restitution,
-                                1.0 if self.walls is None else self.walls.restitution,
-                                self.cell_size, end])
-        self.flags = np.array([dimensions, self.under_gravity, self.walls is not None,
-                               own is not None, 0, 0, self._supports is not None],
-                              dtype=np.int64)
-        self.accel, self.rest = self._stage_supports(n)
-        ek.build_events(self.time, self.position, self.velocity, self.inv_mass, self.radius,
-                        self.gravity, self.accel, self.rest, self.low, self.high, self.params,
-                        self.flags, self.cell, self.table, self.head, self.next, self.previous,
-                        self.occupancy, self.clock, self.book, self.cand_time, self.cand_int,
-                        self.heap_key, self.heap_int, self.meta)
+        self.particles = ek.Particles(
+            state.position[self.order], state.velocity[self.order], state.inv_mass[self.order],
+            state.radius[self.order],
+            np.full(n, np.nan) if own is None else np.asarray(own, float)[self.order])
+        self.schedule = ek.new_schedule(n, self.time)
+        self.candidates, self.heap = ek.new_candidates(n), ek.new_heap(n)
+        cell = np.ascontiguousarray(cell[self.order])
+        self.grid = ek.new_grid(cell, self._table_shape(cell, dimensions))
+        self.tally = np.zeros(1, dtype=ek.TALLY)
+        self.settings = ek.Settings(
+            end=end, budget=max(MIN_EVENT_BUDGET, self.event_budget * n), dimensions=dimensions,
+            cell_size=float(self.cell_size), collapse_time=float(self.collapse_time),
+            threshold=float(self.threshold), pair_restitution=float(self.restitution),
+            wall_restitution=1.0 if self.walls is None else float(self.walls.restitution),
+            gravity=self.gravity, half_gravity=self.half_g, low_walls=self.low_walls,
+            high_walls=self.high_walls, under_gravity=self.under_gravity,
+            has_walls=self.walls is not None, own_restitution=own is not None,
+            own_acceleration=self._supports is not None, record=False, book_losses=False)
+        self.supports = self._stage_supports(n)
+        ek.build_events(self.settings, self.particles, self.supports, self.grid, self.schedule,
+                        self.candidates, self.heap, self.tally)
 
-    def _stage_supports(self, n: int) -> tuple:
-        """Return this step's (accel, rest) in the stage's order (no rows: nobody supported)."""
+    def _stage_supports(self, n: int) -> rk.Supports:
+        """Return this step's supports in the stage's order (no rows: nobody supported)."""
         if self._supports is None:
-            return ek.new_supports(0, rk.PARTNERS)
-        accel, rest = self._supports
+            return rk.new_supports(0)
+        found = self._supports
         inverse = np.empty(n, dtype=np.int64)
-        inverse[self.perm] = np.arange(n)
-        rest = rest[self.perm]
-        partners = rest[:, ek.S_PARTNERS:]
+        inverse[self.order] = np.arange(n)
+        partners = found.partners[self.order]
         # Partners are particles (world index, >= 0) or walls (< -1); -1 ends a list.
         partners[partners >= 0] = inverse[partners[partners >= 0]]
-        return np.ascontiguousarray(accel[self.perm]), rest
+        return rk.Supports(np.ascontiguousarray(found.acceleration[self.order]),
+                           found.supported[self.order], found.wall_mask[self.order], partners)
 
     def _find_supports(self, ctx: StepContext) -> bool:
         """Find the resting contacts and supports of this step (``resting_kernels``).
@@ -224,7 +171,7 @@ class EventDrivenStage(Stage):
         acceleration and supports for the step in ``self._supports`` (None
         when nobody is supported and no particle is static: then every
         particle falls with g). Returns False when a particle rests on more
-        than ``resting_kernels.PARTNERS`` others (the step falls back).
+        than ``PARTNERS`` others (the step falls back).
         """
         state = ctx.state
         n, dims = len(state), ctx.dimensions
@@ -233,50 +180,43 @@ class EventDrivenStage(Stage):
         inv_mass, radius = state.inv_mass, state.radius
         scale = float(np.max(np.abs(position))) if n else 0.0
         reach = radius * (1.0 + 4.0 * rk.RESTING_GAP) + 2.0 * rk.RESTING_ULPS * np.spacing(scale)
-        cand_i, cand_j = candidate_pairs(position, reach)
-        size = cand_i.size + 2 * dims * n
-        c_i, c_j = np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64)
-        c_normal = np.empty((size, 3))
+        pair_first, pair_second = candidate_pairs(position, reach)
+        contacts = rk.new_contacts(pair_first.size + 2 * dims * n)
         rest_speed = ctx.effects.threshold(ctx.dt)
-        m = rk.collect(position, velocity, inv_mass, radius, cand_i, cand_j, self.low_walls,
-                       self.high_walls, dims, rest_speed, c_i, c_j, c_normal)
+        m = rk.collect(position, velocity, inv_mass, radius, pair_first, pair_second,
+                       self.low_walls, self.high_walls, dims, rest_speed, contacts)
         # A static particle does not fall: its own acceleration is 0.
         any_static = bool(np.any(inv_mass == 0.0))
         if m == 0:
             self._old_partner = np.full((0, rk.PARTNERS), -1, dtype=np.int64)
             if any_static:
-                accel, rest = ek.new_supports(n, rk.PARTNERS)
-                accel[inv_mass > 0.0] = self.gravity
-                self._supports = (accel, rest)
+                found = rk.new_supports(n)
+                found.acceleration[inv_mass > 0.0] = self.gravity
+                self._supports = found
             return True
-        info = np.zeros(rk.INFO_SIZE)
+        info = np.zeros(1, dtype=rk.SWEEPS)
         removed = np.empty(m)
-        rk.project_velocities(velocity, inv_mass, m, c_i, c_j, c_normal,
-                              VELOCITY_TOLERANCE * rest_speed, removed, info)
-        pairs = c_j[:m] >= 0
+        rk.project_velocities(velocity, inv_mass, contacts, m, VELOCITY_TOLERANCE * rest_speed,
+                              removed, info)
+        first, second = contacts.first[:m], contacts.second[:m]
+        pairs = second >= 0
         if np.any(removed[pairs] != 0.0):
-            ctx.book('restitution', removed[pairs], c_i[:m][pairs], c_j[:m][pairs])
+            ctx.book('restitution', removed[pairs], first[pairs], second[pairs])
         if np.any(removed[~pairs] != 0.0):
-            ctx.book('walls', removed[~pairs], c_i[:m][~pairs])
+            ctx.book('walls', removed[~pairs], first[~pairs])
         force = np.empty(m)
-        rk.warm_forces(m, c_i, c_j, self._old_partner, self._old_force, force)
-        accel = np.empty((n, 3))
-        rk.support_forces(accel, inv_mass, self.gravity, m, c_i, c_j, c_normal, force,
+        rk.warm_forces(contacts, m, self._old_partner, self._old_force, force)
+        found = rk.new_supports(n)
+        rk.support_forces(found.acceleration, inv_mass, self.gravity, contacts, m, force,
                           ACCELERATION_TOLERANCE * float(np.linalg.norm(self.gravity)), info)
-        rest = np.empty((n, ek.S_PARTNERS + rk.PARTNERS), dtype=np.int64)
         partner_force = np.zeros((n, rk.PARTNERS))
-        supported, walls = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
-        partner = np.empty((n, rk.PARTNERS), dtype=np.int64)
-        status = rk.supports(accel, inv_mass, self.gravity, m, c_i, c_j, force, supported,
-                             partner, partner_force, walls)
-        self._old_partner, self._old_force = partner, partner_force
-        self.resting_info = info
+        status = rk.supports(inv_mass, self.gravity, contacts, m, force, found, partner_force)
+        self._old_partner, self._old_force = found.partners, partner_force
+        self.resting_info = info[0]
         if status != rk.FOUND:
             return False
-        if supported.any() or any_static:
-            rest[:, ek.S_SUPPORTED], rest[:, ek.S_WALLS] = supported, walls
-            rest[:, ek.S_PARTNERS:] = partner
-            self._supports = (accel, rest)
+        if found.supported.any() or any_static:
+            self._supports = found
         return True
 
     def _choose_cell_size(self, state: ParticleState, dimensions: int) -> float:
@@ -293,12 +233,13 @@ class EventDrivenStage(Stage):
         spacing = (self.particles_per_cell * volume / len(state)) ** (1.0 / dimensions)
         return max(diameter, spacing)
 
-    def _table_shape(self, n: int, dimensions: int) -> np.ndarray:
+    def _table_shape(self, cell: np.ndarray, dimensions: int) -> np.ndarray:
         """Slots per axis: the cells the particles (and a box) span, plus one each side."""
+        n = cell.shape[0]
         table = np.ones(3, dtype=np.int64)
         if n:
-            low = self.cell.min(axis=0)[:dimensions].astype(float)
-            high = self.cell.max(axis=0)[:dimensions].astype(float)
+            low = cell.min(axis=0)[:dimensions].astype(float)
+            high = cell.max(axis=0)[:dimensions].astype(float)
             if self.walls is not None:
                 # A box bounds where particles go: cover it whole.
                 lo = np.floor(self.walls.low[:dimensions] / self.cell_size)
@@ -315,11 +256,10 @@ class EventDrivenStage(Stage):
 
     def _still_valid(self, state: ParticleState) -> bool:
         """Return whether ``state`` is the one left by the last step, untouched."""
-        return (state is self._state and len(state) == self.book.shape[0]
-                and state.position.shape == self.position.shape
+        return (state is self._state and len(state) == len(self.schedule)
+                and state.position.shape == self.particles.position.shape
                 and ek.matches(state.position, state.velocity, state.inv_mass, state.radius,
-                               self.position, self.velocity, self.inv_mass, self.radius,
-                               self.perm))
+                               self.particles, self.order))
 
     # -- the stage ---------------------------------------------------------
 
@@ -348,64 +288,56 @@ class EventDrivenStage(Stage):
             self.supported_steps += varied
         if not self._still_valid(state):
             self._rebuild(state, ctx.dimensions, end)
-        self.params[ek.P_END] = end
         n = len(state)
-        budget = max(MIN_EVENT_BUDGET, self.event_budget * n)
         record = ctx.impacts is not None
-        self.flags[ek.F_RECORD] = record
-        self.flags[ek.F_LOSSES] = ctx.losses is not None
-        meta = self.meta
-        meta[ek.MAX_OCC + 1:] = 0       # this step's counters (the largest occupancy stays)
-        dissipated = ctx.stats.dissipated
-        totals = np.array([dissipated.get('restitution', 0.0), dissipated.get('walls', 0.0)])
-        losses = np.zeros(n) if ctx.losses is not None else _NO_LOSSES
         own = state.restitution         # read each step, as the law reads it at each impact
-        self.flags[ek.F_OWN_E] = own is not None
         if own is not None:
-            self.own_e = np.asarray(own, float)[self.perm]
-        if record:
-            rec_f, rec_ij = np.empty((64, ek.RECORD_COLUMNS)), np.empty((64, 2), dtype=np.int64)
-        else:
-            rec_f, rec_ij = _NO_RECORDS
+            self.particles = self.particles._replace(
+                restitution=np.asarray(own, float)[self.order])
+        settings = self.settings._replace(
+            end=end, budget=max(MIN_EVENT_BUDGET, self.event_budget * n), record=record,
+            book_losses=ctx.losses is not None, own_restitution=own is not None)
+        tally = self.tally
+        largest = tally['largest_occupancy'][0]
+        tally[0] = 0                    # this step's counters (the largest occupancy stays)
+        tally['largest_occupancy'] = largest
+        dissipated = ctx.stats.dissipated
+        tally['restitution_dissipated'] = dissipated.get('restitution', 0.0)
+        tally['walls_dissipated'] = dissipated.get('walls', 0.0)
+        losses = np.zeros(n) if ctx.losses is not None else _NO_LOSSES
+        world = ek.WorldArrays(self.order, state.position, state.velocity, losses)
+        impacts = ek.new_impact_buffer(64) if record else _NO_IMPACTS
         while True:
-            status = ek.run_events(
-                end, budget, self.position, self.velocity, self.inv_mass, self.radius,
-                self.own_e, self.gravity, self.half_g, self.accel, self.rest, self.low,
-                self.high, self.params,
-                self.flags, self.cell, self.table, self.head, self.next, self.previous,
-                self.occupancy, self.clock, self.book, self.cand_time, self.cand_int,
-                self.heap_key, self.heap_int, meta, totals, losses, rec_f, rec_ij, self.perm,
-                state.position, state.velocity)
+            status = ek.run_events(settings, self.particles, self.supports, self.grid,
+                                   self.schedule, self.candidates, self.heap, tally, impacts,
+                                   world)
             if status != ek.GROW:
                 break
-            # The impact records are full: double them and let the loop go on.
-            rec_f = np.concatenate([rec_f, np.empty_like(rec_f)])
-            rec_ij = np.concatenate([rec_ij, np.empty_like(rec_ij)])
+            impacts = ek.grown(impacts)     # the buffer is full: the loop goes on
         if status != ek.DONE:
             # The world's state is untouched: let the step solver take the step.
             self._fall_back(ctx)
             return
         self._fallback_streak = 0
-        self.events += int(meta[ek.EVENTS])
-        self.impacts += int(meta[ek.COLLISIONS] + meta[ek.WALL_COLLISIONS])
-        self.crossings += int(meta[ek.CROSSINGS])
-        self.refreshes += int(meta[ek.REFRESHES])
-        ctx.stats.collisions += int(meta[ek.COLLISIONS])
-        ctx.stats.wall_collisions += int(meta[ek.WALL_COLLISIONS])
+        counts = tally[0]
+        self.events += int(counts['events'])
+        self.impacts += int(counts['collisions'] + counts['wall_collisions'])
+        self.crossings += int(counts['crossings'])
+        self.refreshes += int(counts['refreshes'])
+        ctx.stats.collisions += int(counts['collisions'])
+        ctx.stats.wall_collisions += int(counts['wall_collisions'])
         # The totals were summed impact after impact, as bookings one by one would.
-        if meta[ek.BOOKED_PAIRS]:
-            dissipated['restitution'] = float(totals[0])
-        if meta[ek.BOOKED_WALLS]:
-            dissipated['walls'] = float(totals[1])
+        if counts['booked_pairs']:
+            dissipated['restitution'] = float(counts['restitution_dissipated'])
+        if counts['booked_walls']:
+            dissipated['walls'] = float(counts['walls_dissipated'])
         if ctx.losses is not None:
             ctx.losses += losses
-        if record and meta[ek.RECORDED]:
-            k = int(meta[ek.RECORDED])
-            rows_f, ij = rec_f[:k], rec_ij[:k]
-            ctx.impacts.record(rows_f[:, ek.R_TIME], ij[:, 0], ij[:, 1],
-                               rows_f[:, ek.R_POINT:ek.R_POINT + 3],
-                               rows_f[:, ek.R_NORMAL:ek.R_NORMAL + 3],
-                               rows_f[:, ek.R_IMPULSE], 0.0, rows_f[:, ek.R_APPROACH])
+        k = int(counts['recorded'])
+        if record and k:
+            ctx.impacts.record(impacts.time[:k], impacts.first[:k], impacts.second[:k],
+                               impacts.point[:k], impacts.normal[:k], impacts.impulse[:k], 0.0,
+                               impacts.approach[:k])
         self.time = end
 
     def _fall_back(self, ctx: StepContext) -> None:

@@ -1,258 +1,331 @@
 """The event loop of the ``exact`` preset, compiled: one call runs a whole step.
 
-``stages/events/event_driven.py`` keeps the stage's rules (when to rebuild, roll
-back and fall back, what to book); this module runs its events. The data
-are plain arrays the stage owns between steps:
+``event_driven.py`` keeps the stage's rules (when to rebuild, roll back and
+fall back, what to book); this module runs its events on records the stage
+owns between steps (``Particles``, ``Supports``, ``CellGrid``, each particle's
+``SCHEDULE`` row, ``Candidates``, ``Heap``, the ``TALLY``) and one step's
+``Settings``, ``ImpactBuffer`` and ``WorldArrays``:
 
-- **particles**: the stage's own copy of position and velocity, each
-  particle at its own reference time (lazy advance), the time of its
-  previous impact (TC model) and a change counter (``count``), raised
-  whenever its path changes;
-- **cells** one contact diameter wide or more, as a hash grid: cell
-  (cx, cy, cz) lives in slot (cx mod Mx, cy mod My, cz mod Mz) of a table
-  at least 3 slots wide per axis, each slot a doubly linked list of its
-  particles (O(1) moves at a cell crossing). A neighbour query visits the
-  slots around a particle and keeps only particles whose cell really is
+- each particle moves on its closed-form path from its own reference time
+  (lazy advance) and holds a change counter, raised when its path changes;
+- cells at least one contact diameter wide form a hash grid: cell
+  (cx, cy, cz) lives in slot (cx mod Mx, cy mod My, cz mod Mz) of a table at
+  least 3 slots wide per axis, each slot a doubly linked list of its
+  particles; a neighbour query keeps only particles whose cell really is
   adjacent, so an open scene that outgrows the table stays correct;
-- **events per particle** (Rapaport's and Lubachevsky's scheme): a
-  particle's own next wall event and next cell crossing, and a short list
-  of *candidates*, the pair impacts it predicted (time, partner, the
-  partner's change counter then). Its next event is the earliest of them;
-- **a heap of particles** (an indexed binary heap of N entries, keyed by
-  each particle's next event, ties by index), updated in place when a
-  particle's next event changes.
+- each particle holds its next wall event, its next cell crossing and up to
+  ``CANDIDATES`` predicted pair impacts (time, partner, the partner's change
+  counter then: Rapaport's and Lubachevsky's scheme). A full list drops its
+  latest and schedules a refresh at its time, so nothing is lost; a
+  candidate whose partner changed since is dropped when it comes up (lazy
+  invalidation);
+- an indexed binary heap of the particles orders them by their next event.
 
-What each event costs:
+An impact predicts its particles afresh against the 3^d cells around them;
+a cell crossing changes no path and predicts the particle only against the
+newly entered layer of 3^(d-1) cells (a pair in adjacent cells was
+predicted when the later of the two entered adjacency or changed path).
+Pair candidates later than either particle's next wall event are not kept
+(that wall event predicts again).
 
-- an **impact** changes two paths: both particles are predicted afresh
-  against the particles of the 3^d cells around them (their candidate
-  lists rebuilt, their counters raised, which makes every candidate that
-  others hold with them stale);
-- a **cell crossing** changes no path: the particle keeps its candidates
-  and is predicted only against the newly entered layer of cells (3^(d-1)
-  of them: the cells next to its new cell that were not next to its old
-  one). Any pair that can meet is predicted by one of the two before it
-  does: a pair in adjacent cells was predicted when the later of the two
-  entered adjacency or changed path, and stays in that particle's list
-  until one of them changes path (then that one predicts again);
-- a **wall** event is an impact with the wall (or a visit without one):
-  the particle is predicted afresh;
-- a candidate whose partner changed since is dropped when it comes up
-  (lazy invalidation) and the particle's next event is the next earliest.
-
-A list holds ``CANDIDATES`` pair impacts; one more drops the latest and
-schedules a *refresh* at its time (a fresh prediction of that particle,
-path unchanged), so nothing is lost. Pair candidates later than either
-particle's next wall event are not kept (that wall event re-predicts it).
-
-Impact times are closed-form: the relative motion of two particles under
-one uniform g is straight, so a pair meets at the smaller root of
-|d + u s| = r_i + r_j (the quadratic of ``swept_contacts.pair_impact_times``,
-same operations); a wall or cell face is reached at the entering root of a
-quadratic in the gap (``paths.entering_time``, same operations). The
-velocity update is the contact law's compiled per-contact form
-(``contact_kernels.pair_impulse``, ``line_of_action``) with the combine rule
-and the restitution threshold of ``contact_law``. Which particle predicts a
-pair, and when, decides the last bits of an impact time (the pair's times
-are evaluated from the prediction's moment); a different schedule gives
-the same impacts to round-off, not to the bit.
+Impact times are closed-form: under one uniform g a pair's relative motion
+is straight (the smaller root of |d + u s| = r_i + r_j), a wall or a cell
+face is reached at the entering root of a quadratic in the gap (the
+operations of ``paths.entering_time``), and a pair whose own accelerations
+differ meets at the first root of a quartic (``curved_delay``). The velocity
+update is the compiled contact law (``law.primitives``). Which particle
+predicts a pair, and when, decides the last bits of an impact time: another
+schedule gives the same impacts to round-off, not to the bit.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
 from ...step import numba_cache  # noqa: F401,I100 (chooses numba's cache directory first)
-from ...law.primitives import dot3, line_of_action, pair_impulse  # noqa: I100
+from ...law.primitives import (apply_wall_normal, combined_coefficient, dot3,  # noqa: I100
+                               line_of_action, pair_impulse)
 from numba import njit  # noqa: E402,I100
+from .resting_kernels import new_supports  # noqa: E402,I100
+from ...model.tunables import CANDIDATES  # noqa: E402,I100
 
-PAIR_EVENT, WALL_EVENT, CELL_EVENT, REFRESH_EVENT = 0, 1, 2, 3
-# What a run returns: the step is done, or an event the TC model would have
-# to alter under gravity (resting contact) or the event budget ended it.
-# Or the impact records are full: the caller gives larger ones and calls again
-# (the loop resumes where it stopped; the kernel allocates nothing).
+# What a run returns: the step is done; or an event the TC model would have
+# to alter under gravity (resting contact), or the event budget, ended it;
+# or the impact buffer is full: the caller gives a larger one and calls
+# again (the loop resumes where it stopped; the kernel allocates nothing).
 DONE, NOT_EXACT, GROW = 0, 1, 2
-# Columns of ``meta`` (int64): largest slot occupancy seen, impacts
-# recorded, counters of the run (pair and wall impacts, events taken: impacts,
-# wall visits and cell crossings; chores: stale candidates dropped and
-# refreshes; whether the restitution and wall effects booked anything),
-# crossings, fresh predictions, refreshes.
-MAX_OCC, RECORDED, COLLISIONS, WALL_COLLISIONS, EVENTS, CHORES, BOOKED_PAIRS, \
-    BOOKED_WALLS, CROSSINGS, PREDICTIONS, REFRESHES = range(11)
-META_SIZE = 11
-# Columns of ``clock`` (float64, one row per particle): reference time, time
-# of the previous impact, next wall event, next cell crossing, refresh time,
-# next event (the heap's key).
-C_REF, C_LAST, C_WALL, C_CELL, C_REFRESH, C_KEY = range(6)
-CLOCK_COLUMNS = 6
-# Columns of ``book`` (int64, one row per particle): change counter, wall of
-# the next wall event (2 axis + side), face of the next crossing, candidates
-# held, which event is next (a candidate's slot, or one of the codes below).
-B_COUNT, B_WALL, B_FACE, B_HELD, B_NEXT = range(5)
-BOOK_COLUMNS = 5
+# A particle's next event (``SCHEDULE['next_event']``) when it is not a
+# candidate (a candidate is its slot in the list, >= 0).
 NEXT_WALL, NEXT_CELL, NEXT_REFRESH, NEXT_NONE = -1, -2, -3, -4
-# Pair candidates a particle holds (one more schedules a refresh).
-CANDIDATES = 8
-# Columns of the float rows of recorded impacts: time, contact point,
-# normal (from j to i), normal impulse, closing speed.
-R_TIME, R_POINT, R_NORMAL, R_IMPULSE, R_APPROACH = 0, 1, 4, 7, 8
-RECORD_COLUMNS = 9
-# Columns of ``params`` (float64).
-P_COLLAPSE, P_THRESHOLD, P_PAIR_E, P_WALL_E, P_CELL, P_END = range(6)
-PARAMS_SIZE = 6
-# Columns of ``flags`` (int64); F_VARIED: particles have accelerations of
-# their own (``accel``: resting contact, see ``resting_kernels``).
-F_DIMS, F_GRAVITY, F_WALLS, F_OWN_E, F_RECORD, F_LOSSES, F_VARIED = range(7)
-FLAGS_SIZE = 7
-# Columns of ``rest`` (int64, one row per particle, read when F_VARIED):
-# supported (1 or 0), the bit mask of the walls it rests on (bit = face),
-# then its resting partners (stage indices; a wall as -2 - face; -1 ends).
-S_SUPPORTED, S_WALLS, S_PARTNERS = 0, 1, 2
 
 _INF = np.inf
+
+
+class Settings(NamedTuple):
+    """What one step's event loop reads and never changes (SI units)."""
+
+    end: float                  # s: the step's end
+    budget: int                 # events the step may take (chores: 4 budget)
+    dimensions: int
+    cell_size: float            # m
+    collapse_time: float        # s: an impact this soon after another is elastic (TC model)
+    threshold: float            # m/s: e = 0 below this closing speed (0: none)
+    pair_restitution: float     # the scene's particle restitution
+    wall_restitution: float     # the walls' restitution
+    gravity: np.ndarray         # (3,) m/s^2
+    half_gravity: np.ndarray    # (3,) g / 2
+    low_walls: np.ndarray       # (3,) m, -inf where open
+    high_walls: np.ndarray      # (3,) m, inf where open
+    under_gravity: bool
+    has_walls: bool
+    own_restitution: bool       # particles have their own e (``Particles.restitution``)
+    own_acceleration: bool      # particles have their own acceleration (``Supports``)
+    record: bool                # write impacts to the ``ImpactBuffer``
+    book_losses: bool           # add each particle's losses to ``WorldArrays.losses``
+
+
+class Particles(NamedTuple):
+    """The stage's own copy of the particles, in cell order (neighbours near in memory)."""
+
+    position: np.ndarray        # (n, 3) m, each particle at its own reference time
+    velocity: np.ndarray        # (n, 3) m/s
+    inv_mass: np.ndarray        # (n,) 1/kg, 0 for a static particle
+    radius: np.ndarray          # (n,) m
+    restitution: np.ndarray     # (n,) its own e, NaN for none (read with own_restitution)
+
+
+class CellGrid(NamedTuple):
+    """The hash grid of cells: each slot a doubly linked list of its particles."""
+
+    cell: np.ndarray            # (n, 3) int64: each particle's cell coordinates
+    slot: np.ndarray            # (n, 3) int64: its slot's coordinates (cell mod table)
+    table: np.ndarray           # (3,) int64: slots per axis
+    head: np.ndarray            # (slots,) int64: first particle of each slot, -1 none
+    next_in_slot: np.ndarray    # (n,) int64: the next particle of its slot, -1 none
+    previous_in_slot: np.ndarray  # (n,) int64
+    occupancy: np.ndarray       # (slots,) int64: particles in each slot
+
+
+# Each particle's clocks and bookkeeping, one row (its fields near in memory).
+SCHEDULE = np.dtype([
+    ('reference_time', np.float64),     # s: the time its position and velocity are at
+    ('last_impact', np.float64),        # s: its previous impact (TC model), -inf for none
+    ('wall_time', np.float64),          # s: its next wall event
+    ('crossing_time', np.float64),      # s: its next cell crossing
+    ('refresh_time', np.float64),       # s: a fresh prediction (a full list dropped one)
+    ('next_time', np.float64),          # s: its next event, the heap's key
+    ('changes', np.int64),              # raised whenever its path changes
+    ('wall_face', np.int64),            # wall of the next wall event (2 axis + side)
+    ('crossing_face', np.int64),        # face of the next crossing (2 axis + side)
+    ('held', np.int64),                 # pair candidates held
+    ('next_event', np.int64),           # a candidate's slot, or one of NEXT_*
+])
+
+
+class Candidates(NamedTuple):
+    """Each particle's predicted pair impacts (``CANDIDATES`` slots, ``held`` in use)."""
+
+    time: np.ndarray            # (n, CANDIDATES) s
+    partner: np.ndarray         # (n, CANDIDATES) int64
+    stamp: np.ndarray           # (n, CANDIDATES) int64: the partner's ``changes`` then
+
+
+class Heap(NamedTuple):
+    """An indexed binary heap of all particles by next event (ties: the lower index)."""
+
+    key: np.ndarray             # (n,) s: each slot's key, in slot order (sifts read it)
+    particle: np.ndarray        # (n,) int64: the particle at each slot
+    slot: np.ndarray            # (n,) int64: each particle's slot
+
+
+# What a run counts (one row, kept by the stage: a step's counters start at 0).
+TALLY = np.dtype([
+    ('events', np.int64),               # impacts, wall visits and cell crossings taken
+    ('collisions', np.int64),           # pair impacts
+    ('wall_collisions', np.int64),      # wall impacts
+    ('crossings', np.int64),            # cell crossings
+    ('chores', np.int64),               # stale candidates dropped and refreshes
+    ('refreshes', np.int64),            # fresh predictions of a full list
+    ('predictions', np.int64),          # particles predicted afresh
+    ('recorded', np.int64),             # rows written to the impact buffer
+    ('largest_occupancy', np.int64),    # most particles seen in one slot
+    ('booked_pairs', np.int64),         # 1 when a pair impact booked restitution
+    ('booked_walls', np.int64),         # 1 when a wall impact booked walls
+    ('restitution_dissipated', np.float64),  # J: the step's total so far, impact by impact
+    ('walls_dissipated', np.float64),   # J
+])
+
+
+class ImpactBuffer(NamedTuple):
+    """Room for the impacts a run records (world indices; a wall as -1)."""
+
+    time: np.ndarray            # (k,) s
+    point: np.ndarray           # (k, 3) m: the contact point
+    normal: np.ndarray          # (k, 3): from the second to the first
+    impulse: np.ndarray         # (k,) N s: the normal impulse
+    approach: np.ndarray        # (k,) m/s: the closing speed
+    first: np.ndarray           # (k,) int64
+    second: np.ndarray          # (k,) int64 (-1: a wall)
+
+
+class WorldArrays(NamedTuple):
+    """The world's arrays a run publishes to: stage particle k is world particle order[k]."""
+
+    order: np.ndarray           # (n,) int64
+    position: np.ndarray        # (n, 3) m
+    velocity: np.ndarray        # (n, 3) m/s
+    losses: np.ndarray          # (n,) J booked per particle (no rows: not booked)
 
 
 # -- the heap of particles ----------------------------------------------------
 
 @njit(cache=True, inline='always')
-def _sift_down(heap_key, heap_int, size, k, p, t):
-    """Place particle ``p`` of key ``t`` at heap slot ``k`` or below."""
+def _sift_down(heap, size, slot, p, key):
+    """Place particle ``p`` of key ``key`` at heap slot ``slot`` or below."""
+    keys, particle_at, slot_of = heap.key, heap.particle, heap.slot
     while True:
-        c = 2 * k + 1
-        if c >= size:
+        child = 2 * slot + 1
+        if child >= size:
             break
-        tc = heap_key[c]
-        if c + 1 < size:
-            ts = heap_key[c + 1]
-            if ts < tc or (ts == tc and heap_int[0, c + 1] < heap_int[0, c]):
-                c, tc = c + 1, ts
-        if not (tc < t or (tc == t and heap_int[0, c] < p)):
+        child_key = keys[child]
+        if child + 1 < size:
+            sibling_key = keys[child + 1]
+            if sibling_key < child_key or (sibling_key == child_key
+                                           and particle_at[child + 1] < particle_at[child]):
+                child, child_key = child + 1, sibling_key
+        if not (child_key < key or (child_key == key and particle_at[child] < p)):
             break
-        r = heap_int[0, c]
-        heap_key[k] = tc
-        heap_int[0, k] = r
-        heap_int[1, r] = k
-        k = c
-    heap_key[k] = t
-    heap_int[0, k] = p
-    heap_int[1, p] = k
+        moved = particle_at[child]
+        keys[slot] = child_key
+        particle_at[slot] = moved
+        slot_of[moved] = slot
+        slot = child
+    keys[slot] = key
+    particle_at[slot] = p
+    slot_of[p] = slot
 
 
 @njit(cache=True, inline='always')
-def heap_update(clock, heap_key, heap_int, p):
-    """Move particle ``p`` to its place after its key (``clock[p, C_KEY]``) changed.
-
-    The heap keeps the keys in its own order (``heap_key``, slot by slot) so
-    that a sift reads neighbouring memory; ``heap_int`` rows: the particle
-    at each slot, each particle's slot. Ties go to the lower index.
-    """
-    t = clock[p, C_KEY]
-    k = heap_int[1, p]
-    while k > 0:
-        parent = (k - 1) >> 1
-        tp = heap_key[parent]
-        r = heap_int[0, parent]
-        if not (t < tp or (t == tp and p < r)):
+def heap_update(heap, schedule, p):
+    """Move particle ``p`` to its place after its key (``next_time``) changed."""
+    key = schedule[p].next_time
+    keys, particle_at, slot_of = heap.key, heap.particle, heap.slot
+    slot = slot_of[p]
+    while slot > 0:
+        parent = (slot - 1) >> 1
+        parent_key = keys[parent]
+        above = particle_at[parent]
+        if not (key < parent_key or (key == parent_key and p < above)):
             break
-        heap_key[k] = tp
-        heap_int[0, k] = r
-        heap_int[1, r] = k
-        k = parent
-    _sift_down(heap_key, heap_int, heap_key.size, k, p, t)
+        keys[slot] = parent_key
+        particle_at[slot] = above
+        slot_of[above] = slot
+        slot = parent
+    _sift_down(heap, keys.size, slot, p, key)
 
 
 @njit(cache=True)
-def heapify(clock, heap_key, heap_int):
+def heapify(heap, schedule):
     """Order every particle by its key (the heap of all particles)."""
-    n = heap_key.size
+    n = heap.key.size
     for p in range(n):
-        heap_key[p] = clock[p, C_KEY]
-        heap_int[0, p] = p
-        heap_int[1, p] = p
-    for k in range((n - 2) // 2, -1, -1):
-        _sift_down(heap_key, heap_int, n, k, heap_int[0, k], heap_key[k])
+        heap.key[p] = schedule[p].next_time
+        heap.particle[p] = p
+        heap.slot[p] = p
+    for slot in range((n - 2) // 2, -1, -1):
+        _sift_down(heap, n, slot, heap.particle[slot], heap.key[slot])
 
+
+# -- the candidate lists -------------------------------------------------------
 
 @njit(cache=True, inline='always')
-def _set_key(p, clock, book, cand_time):
+def _set_next(p, schedule, candidates):
     """Make particle p's key the earliest of its events and note which one it is.
 
     On a tie the wall comes first, then the cell crossing, the refresh and
     the candidates in list order.
     """
-    best, which = clock[p, C_WALL], NEXT_WALL
-    if clock[p, C_CELL] < best:
-        best, which = clock[p, C_CELL], NEXT_CELL
-    if clock[p, C_REFRESH] < best:
-        best, which = clock[p, C_REFRESH], NEXT_REFRESH
-    for k in range(book[p, B_HELD]):
-        if cand_time[p, k] < best:
-            best, which = cand_time[p, k], k
+    own = schedule[p]
+    best, which = own.wall_time, NEXT_WALL
+    if own.crossing_time < best:
+        best, which = own.crossing_time, NEXT_CELL
+    if own.refresh_time < best:
+        best, which = own.refresh_time, NEXT_REFRESH
+    times = candidates.time
+    for k in range(own.held):
+        if times[p, k] < best:
+            best, which = times[p, k], k
     if best == _INF:
         which = NEXT_NONE
-    clock[p, C_KEY] = best
-    book[p, B_NEXT] = which
+    own.next_time = best
+    own.next_event = which
 
 
 @njit(cache=True, inline='always')
-def _drop(p, k, book, cand_time, cand_int):
+def _drop(p, k, schedule, candidates):
     """Remove candidate ``k`` of particle ``p`` (the last one takes its slot)."""
-    last = book[p, B_HELD] - 1
-    cand_time[p, k] = cand_time[p, last]
-    cand_int[p, k, 0] = cand_int[p, last, 0]
-    cand_int[p, k, 1] = cand_int[p, last, 1]
-    book[p, B_HELD] = last
+    last = schedule[p].held - 1
+    candidates.time[p, k] = candidates.time[p, last]
+    candidates.partner[p, k] = candidates.partner[p, last]
+    candidates.stamp[p, k] = candidates.stamp[p, last]
+    schedule[p].held = last
 
 
 @njit(cache=True, inline='always')
-def _hold(p, q, at, stamp, clock, book, cand_time, cand_int):
+def _hold(p, q, at, stamp, schedule, candidates):
     """Add pair candidate (q at ``at``) to p's list; a full list drops its latest.
 
     The dropped time becomes a refresh of p (if earlier than the one
     scheduled), where p is predicted afresh: nothing is lost.
     """
-    held = book[p, B_HELD]
+    own = schedule[p]
+    held = own.held
     if held < CANDIDATES:
-        cand_time[p, held] = at
-        cand_int[p, held, 0] = q
-        cand_int[p, held, 1] = stamp
-        book[p, B_HELD] = held + 1
+        candidates.time[p, held] = at
+        candidates.partner[p, held] = q
+        candidates.stamp[p, held] = stamp
+        own.held = held + 1
         return
     latest, slot = at, -1
     for k in range(held):
-        if cand_time[p, k] > latest:
-            latest, slot = cand_time[p, k], k
+        if candidates.time[p, k] > latest:
+            latest, slot = candidates.time[p, k], k
     if slot >= 0:
-        cand_time[p, slot] = at
-        cand_int[p, slot, 0] = q
-        cand_int[p, slot, 1] = stamp
-    if latest < clock[p, C_REFRESH]:
-        clock[p, C_REFRESH] = latest
+        candidates.time[p, slot] = at
+        candidates.partner[p, slot] = q
+        candidates.stamp[p, slot] = stamp
+    if latest < own.refresh_time:
+        own.refresh_time = latest
 
 
 # -- paths --------------------------------------------------------------------
 
 @njit(cache=True, inline='always')
-def _advance(pos, vel, clock, gravity, half_g, accel, varied, p, when):
-    """Bring particle ``p`` to time ``when`` on its parabola (``EventDrivenStage._advance``).
+def _advance(settings, particles, supports, schedule, p, when):
+    """Bring particle ``p`` to time ``when`` on its parabola.
 
     The operations of the vectorised form: x + (v tau + ((g / 2) tau) tau), v + g tau,
-    with p's own acceleration for g when particles have their own (``varied``).
+    with p's own acceleration for g when particles have their own.
     """
-    tau = when - clock[p, C_REF]
-    if varied:
+    own = schedule[p]
+    tau = when - own.reference_time
+    position, velocity = particles.position, particles.velocity
+    if settings.own_acceleration:
+        acceleration = supports.acceleration
         for c in range(3):
-            pos[p, c] += vel[p, c] * tau + (0.5 * accel[p, c]) * tau * tau
+            position[p, c] += velocity[p, c] * tau + (0.5 * acceleration[p, c]) * tau * tau
         for c in range(3):
-            vel[p, c] += accel[p, c] * tau
+            velocity[p, c] += acceleration[p, c] * tau
     else:
+        gravity, half_gravity = settings.gravity, settings.half_gravity
         for c in range(3):
-            pos[p, c] += vel[p, c] * tau + half_g[c] * tau * tau
+            position[p, c] += velocity[p, c] * tau + half_gravity[c] * tau * tau
         for c in range(3):
-            vel[p, c] += gravity[c] * tau
-    clock[p, C_REF] = when
+            velocity[p, c] += gravity[c] * tau
+    own.reference_time = when
 
 
 @njit(cache=True, error_model='numpy', inline='always')
@@ -276,22 +349,12 @@ def entering(gap, rate, curvature):
 
 
 @njit(cache=True, error_model='numpy', inline='always')
-def pair_time(pos, vel, radius, a, b):
-    """Delay until pair (a, b), both at one time, touches: ``pair_impact_times`` for one pair.
-
-    inf for none; 0 for an overlapping pair that approaches.
-    """
-    return pair_delay(pos[a, 0] - pos[b, 0], pos[a, 1] - pos[b, 1], pos[a, 2] - pos[b, 2],
-                      vel[a, 0] - vel[b, 0], vel[a, 1] - vel[b, 1], vel[a, 2] - vel[b, 2],
-                      radius[a] + radius[b])
-
-
-@njit(cache=True, error_model='numpy', inline='always')
 def pair_delay(dx, dy, dz, rx, ry, rz, reach):
-    """``pair_time`` from the offset d, relative velocity r and contact distance (scalars).
+    """Delay until a pair touches, from its offset d, relative velocity r and reach (scalars).
 
-    Scalars only: an array handed to a function, even an inlined one, costs
-    two atomic reference-count updates, which the innermost loop cannot pay.
+    The smaller root of |d + r s| = reach (the quadratic of
+    ``swept_contacts.pair_impact_times``, same operations): inf for none, 0
+    for an overlapping pair that approaches.
     """
     # Most neighbours recede, or approach and miss: say so before dividing,
     # in raw units (the sign of each test is the scaled one's but at round-off
@@ -441,30 +504,36 @@ def curved_delay(dx, dy, dz, ux, uy, uz, ax, ay, az, reach, horizon):
 
 
 @njit(cache=True, error_model='numpy', inline='always')
-def _varied_delay(p, q, when, horizon, pos, vel, radius, accel, rest, clock):
-    """Return when pair (p, q) meets, each with its own acceleration (``F_VARIED``).
+def _varied_delay(p, q, when, horizon, particles, supports, schedule):
+    """Return when pair (p, q) meets, each with its own acceleration (``own_acceleration``).
 
     Brings q to ``when`` first; p is there already. A resting partner of p
     is never predicted (inf).
     """
-    tau = when - clock[q, C_REF]
+    position, velocity = particles.position, particles.velocity
+    acceleration = supports.acceleration
+    tau = when - schedule[q].reference_time
     if tau != 0.0:
         for c in range(3):
-            pos[q, c] += vel[q, c] * tau + (0.5 * accel[q, c]) * tau * tau
+            position[q, c] += velocity[q, c] * tau + (0.5 * acceleration[q, c]) * tau * tau
         for c in range(3):
-            vel[q, c] += accel[q, c] * tau
-        clock[q, C_REF] = when
-    if rest[p, S_SUPPORTED] or rest[q, S_SUPPORTED]:
-        for s in range(S_PARTNERS, rest.shape[1]):
-            partner = rest[p, s]
+            velocity[q, c] += acceleration[q, c] * tau
+        schedule[q].reference_time = when
+    if supports.supported[p] or supports.supported[q]:
+        for s in range(supports.partners.shape[1]):
+            partner = supports.partners[p, s]
             if partner == q:
                 return _INF
             if partner == -1:
                 break
-    ax, ay, az = accel[p, 0] - accel[q, 0], accel[p, 1] - accel[q, 1], accel[p, 2] - accel[q, 2]
-    dx, dy, dz = pos[p, 0] - pos[q, 0], pos[p, 1] - pos[q, 1], pos[p, 2] - pos[q, 2]
-    rx, ry, rz = vel[p, 0] - vel[q, 0], vel[p, 1] - vel[q, 1], vel[p, 2] - vel[q, 2]
-    reach = radius[p] + radius[q]
+    ax = acceleration[p, 0] - acceleration[q, 0]
+    ay = acceleration[p, 1] - acceleration[q, 1]
+    az = acceleration[p, 2] - acceleration[q, 2]
+    dx, dy, dz = (position[p, 0] - position[q, 0], position[p, 1] - position[q, 1],
+                  position[p, 2] - position[q, 2])
+    rx, ry, rz = (velocity[p, 0] - velocity[q, 0], velocity[p, 1] - velocity[q, 1],
+                  velocity[p, 2] - velocity[q, 2])
+    reach = particles.radius[p] + particles.radius[q]
     if ax == 0.0 and ay == 0.0 and az == 0.0:
         return when + pair_delay(dx, dy, dz, rx, ry, rz, reach)
     return when + curved_delay(dx, dy, dz, rx, ry, rz, ax, ay, az, reach, horizon)
@@ -473,109 +542,117 @@ def _varied_delay(p, q, when, horizon, pos, vel, radius, accel, rest, clock):
 # -- the cell grid ------------------------------------------------------------
 
 @njit(cache=True, inline='always')
-def _slot(p, cell, table):
-    """Return the slot of particle p's cell (its slot coordinates are columns 3 to 5)."""
-    return (cell[p, 3] * table[1] + cell[p, 4]) * table[2] + cell[p, 5]
+def _slot(p, grid):
+    """Return the slot of particle p's cell."""
+    table, slot = grid.table, grid.slot
+    return (slot[p, 0] * table[1] + slot[p, 1]) * table[2] + slot[p, 2]
 
 
 @njit(cache=True, inline='always')
-def _insert(p, cell, table, head, nxt, prv, occupancy, meta):
+def _insert(p, grid, tally):
     """Put particle ``p`` at the head of its cell's slot list."""
-    s = _slot(p, cell, table)
-    first = head[s]
-    nxt[p], prv[p] = first, -1
+    s = _slot(p, grid)
+    first = grid.head[s]
+    grid.next_in_slot[p], grid.previous_in_slot[p] = first, -1
     if first >= 0:
-        prv[first] = p
-    head[s] = p
-    occupancy[s] += 1
-    if occupancy[s] > meta[MAX_OCC]:
-        meta[MAX_OCC] = occupancy[s]
+        grid.previous_in_slot[first] = p
+    grid.head[s] = p
+    grid.occupancy[s] += 1
+    counts = tally[0]
+    if grid.occupancy[s] > counts.largest_occupancy:
+        counts.largest_occupancy = grid.occupancy[s]
 
 
 @njit(cache=True, inline='always')
-def _remove(p, cell, table, head, nxt, prv, occupancy):
+def _remove(p, grid):
     """Take particle ``p`` out of its cell's slot list."""
-    s = _slot(p, cell, table)
-    if prv[p] >= 0:
-        nxt[prv[p]] = nxt[p]
+    s = _slot(p, grid)
+    following, preceding = grid.next_in_slot, grid.previous_in_slot
+    if preceding[p] >= 0:
+        following[preceding[p]] = following[p]
     else:
-        head[s] = nxt[p]
-    if nxt[p] >= 0:
-        prv[nxt[p]] = prv[p]
-    occupancy[s] -= 1
+        grid.head[s] = following[p]
+    if following[p] >= 0:
+        preceding[following[p]] = preceding[p]
+    grid.occupancy[s] -= 1
 
 
 # -- prediction ---------------------------------------------------------------
 
 @njit(cache=True, error_model='numpy', inline='always')
-def _own_events(p, pos, vel, radius, gravity, accel, rest, low, high, params, flags, cell,
-                clock, book, walls_too):
+def _own_events(p, settings, particles, supports, grid, schedule, walls_too):
     """Delays until p (at its reference time) leaves its cell and reaches a wall.
 
     Sets p's next crossing (and, with ``walls_too``, its next wall event) as
     times; on a tie the lower face or wall of the lower axis is taken. With
-    accelerations of their own (``F_VARIED``) p moves with its own, and the
-    walls it rests on are not predicted (it neither closes nor opens on them).
+    accelerations of their own p moves with its own, and the walls it rests
+    on are not predicted (it neither closes nor opens on them).
     """
-    varied = flags[F_VARIED] != 0
-    resting_on = rest[p, S_WALLS] if varied else 0
-    when = clock[p, C_REF]
-    size = params[P_CELL]
-    r = radius[p]
-    best_wall, wall_col = _INF, -1
-    best_cell, cell_col = _INF, 0
-    for axis in range(flags[F_DIMS]):
-        x, v = pos[p, axis], vel[p, axis]
-        g = accel[p, axis] if varied else gravity[axis]
-        low_face = cell[p, axis] * size
+    varied = settings.own_acceleration
+    resting_on = supports.wall_mask[p] if varied else 0
+    own = schedule[p]
+    when = own.reference_time
+    size = settings.cell_size
+    low, high = settings.low_walls, settings.high_walls
+    r = particles.radius[p]
+    best_wall, wall_face = _INF, -1
+    best_cell, cell_face = _INF, 0
+    for axis in range(settings.dimensions):
+        x, v = particles.position[p, axis], particles.velocity[p, axis]
+        g = supports.acceleration[p, axis] if varied else settings.gravity[axis]
+        low_face = grid.cell[p, axis] * size
         t_low = entering(x - low_face, v, g)
         t_high = entering((low_face + size) - x, -v, -g)
         if t_low < best_cell:
-            best_cell, cell_col = t_low, 2 * axis
+            best_cell, cell_face = t_low, 2 * axis
         if t_high < best_cell:
-            best_cell, cell_col = t_high, 2 * axis + 1
-        if walls_too and flags[F_WALLS]:
+            best_cell, cell_face = t_high, 2 * axis + 1
+        if walls_too and settings.has_walls:
             w_low = _INF if resting_on >> (2 * axis) & 1 else entering(x - (low[axis] + r), v, g)
             w_high = (_INF if resting_on >> (2 * axis + 1) & 1
                       else entering((high[axis] - r) - x, -v, -g))
             if w_low < best_wall:
-                best_wall, wall_col = w_low, 2 * axis
+                best_wall, wall_face = w_low, 2 * axis
             if w_high < best_wall:
-                best_wall, wall_col = w_high, 2 * axis + 1
-    clock[p, C_CELL] = when + best_cell
-    book[p, B_FACE] = cell_col
+                best_wall, wall_face = w_high, 2 * axis + 1
+    own.crossing_time = when + best_cell
+    own.crossing_face = cell_face
     if walls_too:
-        clock[p, C_WALL] = when + best_wall
-        book[p, B_WALL] = wall_col
+        own.wall_time = when + best_wall
+        own.wall_face = wall_face
 
 
 @njit(cache=True, error_model='numpy', inline='always')
-def _scan(p, when, along, offset, skip_before, pos, vel, inv_mass, radius, gravity, half_g,
-          accel, rest, params, flags, cell, table, head, nxt, clock, book, cand_time, cand_int):
+def _scan(p, when, along, offset, skip_before, settings, particles, supports, grid, schedule,
+          candidates):
     """Predict p against the particles of the cells around it; keep the impacts as candidates.
 
     ``along`` < 0: the 3^d cells around p's cell; otherwise the layer of
     3^(d-1) cells ``offset`` (+1 or -1) cells away along that axis. Dynamic
     particles below ``skip_before`` are left out (they predicted p already).
     A candidate later than either particle's next wall event is not kept.
-    With accelerations of their own (``F_VARIED``): a pair whose two
-    accelerations differ moves on a parabola relative to each other, so its
-    time is ``curved_delay``'s (within the step, to ``params[P_END]``), and
-    p's resting partners are not predicted.
+    With accelerations of their own: a pair whose two accelerations differ
+    moves on a parabola relative to each other, so its time is
+    ``curved_delay``'s (within the step), and p's resting partners are not
+    predicted.
     """
-    varied = flags[F_VARIED] != 0
-    horizon = params[P_END] - when
-    dims = flags[F_DIMS]
-    mx, my, mz = table[0], table[1], table[2]
-    px, py, pz = cell[p, 0], cell[p, 1], cell[p, 2]
-    sx0, sy0, sz0 = cell[p, 3], cell[p, 4], cell[p, 5]
-    wall_p = clock[p, C_WALL]
+    varied = settings.own_acceleration
+    horizon = settings.end - when
+    dims = settings.dimensions
+    table, cell, head, following = grid.table, grid.cell, grid.head, grid.next_in_slot
+    position, velocity = particles.position, particles.velocity
+    inv_mass, radius = particles.inv_mass, particles.radius
+    slots_x, slots_y, slots_z = table[0], table[1], table[2]
+    cell_x, cell_y, cell_z = cell[p, 0], cell[p, 1], cell[p, 2]
+    slot_x, slot_y, slot_z = grid.slot[p, 0], grid.slot[p, 1], grid.slot[p, 2]
+    wall_p = schedule[p].wall_time
     # p's state and g as scalars for the inner loop.
-    px_, py_, pz_ = pos[p, 0], pos[p, 1], pos[p, 2]
-    vx_, vy_, vz_ = vel[p, 0], vel[p, 1], vel[p, 2]
-    r_p = radius[p]
+    x_p, y_p, z_p = position[p, 0], position[p, 1], position[p, 2]
+    vx_p, vy_p, vz_p = velocity[p, 0], velocity[p, 1], velocity[p, 2]
+    radius_p = radius[p]
+    gravity, half_gravity = settings.gravity, settings.half_gravity
     gx, gy, gz = gravity[0], gravity[1], gravity[2]
-    hx, hy, hz = half_g[0], half_g[1], half_g[2]
+    hx, hy, hz = half_gravity[0], half_gravity[1], half_gravity[2]
     lo_x = hi_x = lo_y = hi_y = lo_z = hi_z = 0
     if dims > 0:
         lo_x, hi_x = -1, 1
@@ -590,154 +667,123 @@ def _scan(p, when, along, offset, skip_before, pos, vel, inv_mass, radius, gravi
     elif along == 2:
         lo_z = hi_z = offset
     for dx in range(lo_x, hi_x + 1):
-        sx = sx0 + dx
-        sx = mx - 1 if sx < 0 else (0 if sx >= mx else sx)
+        sx = slot_x + dx
+        sx = slots_x - 1 if sx < 0 else (0 if sx >= slots_x else sx)
         for dy in range(lo_y, hi_y + 1):
-            sy = sy0 + dy
-            sy = my - 1 if sy < 0 else (0 if sy >= my else sy)
-            row = (sx * my + sy) * mz
+            sy = slot_y + dy
+            sy = slots_y - 1 if sy < 0 else (0 if sy >= slots_y else sy)
+            row = (sx * slots_y + sy) * slots_z
             for dz in range(lo_z, hi_z + 1):
-                sz = sz0 + dz
-                sz = mz - 1 if sz < 0 else (0 if sz >= mz else sz)
-                cx, cy, cz = px + dx, py + dy, pz + dz
+                sz = slot_z + dz
+                sz = slots_z - 1 if sz < 0 else (0 if sz >= slots_z else sz)
+                cx, cy, cz = cell_x + dx, cell_y + dy, cell_z + dz
                 q = head[row + sz]
                 while q >= 0:
                     if q != p and cell[q, 0] == cx and cell[q, 1] == cy and cell[q, 2] == cz \
                             and not (q < skip_before and inv_mass[q] > 0.0):
                         if varied:
-                            at = _varied_delay(p, q, when, horizon, pos, vel, radius, accel,
-                                               rest, clock)
+                            at = _varied_delay(p, q, when, horizon, particles, supports, schedule)
                         else:
-                            tau = when - clock[q, C_REF]
+                            tau = when - schedule[q].reference_time
                             if tau != 0.0:
-                                # _advance(q), written out: no arrays handed on.
-                                pos[q, 0] += vel[q, 0] * tau + hx * tau * tau
-                                pos[q, 1] += vel[q, 1] * tau + hy * tau * tau
-                                pos[q, 2] += vel[q, 2] * tau + hz * tau * tau
-                                vel[q, 0] += gx * tau
-                                vel[q, 1] += gy * tau
-                                vel[q, 2] += gz * tau
-                                clock[q, C_REF] = when
+                                # _advance(q), written out with g as scalars.
+                                position[q, 0] += velocity[q, 0] * tau + hx * tau * tau
+                                position[q, 1] += velocity[q, 1] * tau + hy * tau * tau
+                                position[q, 2] += velocity[q, 2] * tau + hz * tau * tau
+                                velocity[q, 0] += gx * tau
+                                velocity[q, 1] += gy * tau
+                                velocity[q, 2] += gz * tau
+                                schedule[q].reference_time = when
                             at = when + pair_delay(
-                                px_ - pos[q, 0], py_ - pos[q, 1], pz_ - pos[q, 2],
-                                vx_ - vel[q, 0], vy_ - vel[q, 1], vz_ - vel[q, 2],
-                                r_p + radius[q])
-                        if at < wall_p and at < clock[q, C_WALL]:
-                            _hold(p, q, at, book[q, B_COUNT], clock, book, cand_time, cand_int)
-                    q = nxt[q]
+                                x_p - position[q, 0], y_p - position[q, 1], z_p - position[q, 2],
+                                vx_p - velocity[q, 0], vy_p - velocity[q, 1],
+                                vz_p - velocity[q, 2], radius_p + radius[q])
+                        if at < wall_p and at < schedule[q].wall_time:
+                            _hold(p, q, at, schedule[q].changes, schedule, candidates)
+                    q = following[q]
 
 
 @njit(cache=True, error_model='numpy')
-def _predict(p, bump, skip_before, pos, vel, inv_mass, radius, gravity, half_g, accel, rest,
-             low, high, params, flags, cell, table, head, nxt, clock, book, cand_time,
-             cand_int, meta):
+def _predict(p, bump, skip_before, settings, particles, supports, grid, schedule, candidates,
+             tally):
     """Predict particle p (at its reference time) afresh: walls, cell, 3^d cells around.
 
     ``bump``: p's path changed, so the candidates others hold with p go stale.
     Sets p's key; the caller moves it in the heap. (``build_events``'s; the
     event loop has the same steps inline.)
     """
+    own = schedule[p]
     if bump:
-        book[p, B_COUNT] += 1
-    meta[PREDICTIONS] += 1
-    book[p, B_HELD] = 0
-    clock[p, C_REFRESH] = _INF
-    _own_events(p, pos, vel, radius, gravity, accel, rest, low, high, params, flags, cell,
-                clock, book, True)
-    _scan(p, clock[p, C_REF], -1, 0, skip_before, pos, vel, inv_mass, radius, gravity, half_g,
-          accel, rest, params, flags, cell, table, head, nxt, clock, book, cand_time, cand_int)
-    _set_key(p, clock, book, cand_time)
+        own.changes += 1
+    tally[0].predictions += 1
+    own.held = 0
+    own.refresh_time = _INF
+    _own_events(p, settings, particles, supports, grid, schedule, True)
+    _scan(p, own.reference_time, -1, 0, skip_before, settings, particles, supports, grid,
+          schedule, candidates)
+    _set_next(p, schedule, candidates)
 
 
 @njit(cache=True, inline='always')
-def _enter_cell(p, cell, table, head, nxt, prv, occupancy, book, cand_time, cand_int, meta):
+def _enter_cell(p, grid, schedule, candidates, tally):
     """Move p into the next cell; return the axis and side (+1, -1) of its new layer.
 
     Candidates whose partner changed path are dropped now (room for new ones).
     """
-    face = book[p, B_FACE]
+    face = schedule[p].crossing_face
     axis, side = face // 2, face % 2
-    _remove(p, cell, table, head, nxt, prv, occupancy)
+    _remove(p, grid)
     # The cell and its slot along the axis (wrapping round the table).
-    wrap = table[axis]
+    cell, slot = grid.cell, grid.slot
+    wrap = grid.table[axis]
     if side:
         cell[p, axis] += 1
-        cell[p, 3 + axis] = 0 if cell[p, 3 + axis] == wrap - 1 else cell[p, 3 + axis] + 1
+        slot[p, axis] = 0 if slot[p, axis] == wrap - 1 else slot[p, axis] + 1
     else:
         cell[p, axis] -= 1
-        cell[p, 3 + axis] = wrap - 1 if cell[p, 3 + axis] == 0 else cell[p, 3 + axis] - 1
-    _insert(p, cell, table, head, nxt, prv, occupancy, meta)
-    for k in range(book[p, B_HELD] - 1, -1, -1):
-        q = cand_int[p, k, 0]
-        if book[q, B_COUNT] != cand_int[p, k, 1]:
-            _drop(p, k, book, cand_time, cand_int)
+        slot[p, axis] = wrap - 1 if slot[p, axis] == 0 else slot[p, axis] - 1
+    _insert(p, grid, tally)
+    for k in range(schedule[p].held - 1, -1, -1):
+        q = candidates.partner[p, k]
+        if schedule[q].changes != candidates.stamp[p, k]:
+            _drop(p, k, schedule, candidates)
     return axis, 1 if side else -1
 
 
 # -- events -------------------------------------------------------------------
 
-@njit(cache=True, error_model='numpy', inline='always')
-def _own_coefficient(own, p, default):
-    """Return particle p's coefficient for the combine rule, and whether it has one."""
-    value = own[p]
-    if math.isnan(value):
-        return default, False
-    return value, True
-
-
-@njit(cache=True, error_model='numpy', inline='always')
-def pair_restitution(own, has_own, a, b, default):
-    """``contact_law.pair_coefficient`` for one pair (geometric mean, default if neither)."""
-    if not has_own:
-        return default
-    x, have_a = _own_coefficient(own, a, default)
-    y, have_b = _own_coefficient(own, b, default)
-    if not have_a and not have_b:
-        return default
-    return math.sqrt(x * y)
-
-
-@njit(cache=True, error_model='numpy', inline='always')
-def wall_restitution(own, has_own, p, default):
-    """``contact_law.wall_coefficient`` for one particle at a wall of ``default``."""
-    if not has_own:
-        return default
-    x, have = _own_coefficient(own, p, default)
-    if not have:
-        return default
-    return math.sqrt(x * default)
+@njit(cache=True, inline='always')
+def _record(impacts, tally, when, first, second, point, normal, impulse, approach):
+    """Append one impact (room is checked before each event); point, normal: 3-tuples."""
+    counts = tally[0]
+    k = counts.recorded
+    impacts.time[k] = when
+    impacts.point[k, 0], impacts.point[k, 1], impacts.point[k, 2] = point
+    impacts.normal[k, 0], impacts.normal[k, 1], impacts.normal[k, 2] = normal
+    impacts.impulse[k], impacts.approach[k] = impulse, approach
+    impacts.first[k], impacts.second[k] = first, second
+    counts.recorded = k + 1
 
 
 @njit(cache=True, inline='always')
-def _record(rec_f, rec_ij, meta, when, i, j, px, py, pz, nx, ny, nz, impulse, approach):
-    """Append one impact row (room is reserved before each event)."""
-    k = meta[RECORDED]
-    rec_f[k, R_TIME] = when
-    rec_f[k, R_POINT], rec_f[k, R_POINT + 1], rec_f[k, R_POINT + 2] = px, py, pz
-    rec_f[k, R_NORMAL], rec_f[k, R_NORMAL + 1], rec_f[k, R_NORMAL + 2] = nx, ny, nz
-    rec_f[k, R_IMPULSE], rec_f[k, R_APPROACH] = impulse, approach
-    rec_ij[k, 0], rec_ij[k, 1] = i, j
-    meta[RECORDED] = k + 1
-
-
-@njit(cache=True, inline='always')
-def _keeps_supports(rest, p, nx, ny, nz):
-    """Say whether an impulse along N on particle p leaves its supports as they are.
+def _keeps_supports(supports, p, normal):
+    """Say whether an impulse along ``normal`` (a 3-tuple) on p leaves its supports as they are.
 
     True for a particle that is not supported, and for one that rests on
     walls only, each at right angles to N (a ball rolling on a floor struck
     sideways); an impulse on a particle resting on others would change
     their normal speeds too.
     """
-    if not rest[p, S_SUPPORTED]:
+    if not supports.supported[p]:
         return True
-    walls = rest[p, S_WALLS]
-    for s in range(S_PARTNERS, rest.shape[1]):
-        partner = rest[p, s]
+    for s in range(supports.partners.shape[1]):
+        partner = supports.partners[p, s]
         if partner == -1:
             break
         if partner >= 0:
             return False
+    walls = supports.wall_mask[p]
+    nx, ny, nz = normal
     if walls & 3 and nx != 0.0:
         return False
     if walls & 12 and ny != 0.0:
@@ -749,284 +795,285 @@ def _keeps_supports(rest, p, nx, ny, nz):
 
 # Without the runtime's reference counting (``_nrt=False``): the kernel
 # allocates nothing, and the counts numba keeps for every array handed to an
-# inlined helper cost atomic updates in the innermost loops (13 % of the
-# loop's time, measured with perf).
+# inlined helper would cost atomic updates in the innermost loops.
 @njit(cache=True, error_model='numpy', _nrt=False)
-def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, half_g, accel, rest,
-               low, high, params, flags, cell, table, head, nxt, prv, occupancy, clock, book,
-               cand_time, cand_int, heap_key, heap_int, meta, totals, losses, rec_f, rec_ij,
-               perm, out_pos, out_vel):
-    """Process every event up to ``end``, then publish every particle at ``end``.
+def run_events(settings, particles, supports, grid, schedule, candidates, heap, tally, impacts,
+               world):
+    """Process every event up to ``settings.end``, then publish every particle there.
 
-    The stage's particles are the world's in another order (neighbours
-    near in memory): stage particle k is the world's ``perm[k]``, which is
-    the index that impacts, losses and the published state use.
-
-    The rules of ``EventDrivenStage`` (see its module doc): returns the
-    status. On ``NOT_EXACT`` (an event the TC model would have to alter
-    under gravity, or more than ``budget`` events) the stage's arrays are
-    left mid-step and ``out_pos``, ``out_vel`` (the world's state)
-    untouched, for the caller to rebuild. On ``GROW`` the impact records
-    are full: call again with larger ones (their rows so far copied).
-    ``totals`` (restitution, walls) accumulate the energy booked, ``losses``
-    the per-particle share, impacts go to the record arrays when
-    ``flags[F_RECORD]``; ``half_g`` is g / 2. With ``F_VARIED`` each
-    particle moves with its own acceleration (``accel``), and an impact that
-    would change the normal speed at a support of a supported particle
-    (``rest``; see ``_keeps_supports``) also ends the attempt (``NOT_EXACT``).
+    Returns the status. On ``NOT_EXACT`` (an event the TC model would have
+    to alter under gravity, an impact that would change the normal speed at
+    a support of a supported particle (``_keeps_supports``), or more events
+    than the budget) the records are left mid-step and the world's arrays
+    untouched, for the caller to rebuild. On ``GROW`` the impact buffer is
+    full: call again with a larger one (its rows so far copied). The tally's
+    dissipated totals accumulate the energy booked, impact after impact;
+    ``world.losses`` each particle's share (world indices, as the impacts).
     """
-    under_gravity = flags[F_GRAVITY] != 0
-    varied = flags[F_VARIED] != 0
-    collapse = params[P_COLLAPSE]
-    threshold = params[P_THRESHOLD]
-    has_own = flags[F_OWN_E] != 0
-    record = flags[F_RECORD] != 0
-    book_losses = flags[F_LOSSES] != 0
-    while book.shape[0] > 0:
-        p = heap_int[0, 0]
-        when = heap_key[0]
+    under_gravity = settings.under_gravity
+    varied = settings.own_acceleration
+    collapse = settings.collapse_time
+    threshold = settings.threshold
+    has_own = settings.own_restitution
+    record = settings.record
+    book_losses = settings.book_losses
+    end, budget = settings.end, settings.budget
+    position, velocity = particles.position, particles.velocity
+    inv_mass, radius = particles.inv_mass, particles.radius
+    order, losses = world.order, world.losses
+    counts = tally[0]
+    while schedule.shape[0] > 0:
+        p = heap.particle[0]
+        when = heap.key[0]
         if not when <= end:
             break
-        which = book[p, B_NEXT]
+        which = schedule[p].next_event
         if which >= 0:
-            q = cand_int[p, which, 0]
-            if book[q, B_COUNT] != cand_int[p, which, 1]:
+            q = candidates.partner[p, which]
+            if schedule[q].changes != candidates.stamp[p, which]:
                 # Its partner changed path since: drop it, take p's next one.
-                meta[CHORES] += 1
-                if meta[CHORES] > 4 * budget:
+                counts.chores += 1
+                if counts.chores > 4 * budget:
                     return NOT_EXACT
-                _drop(p, which, book, cand_time, cand_int)
-                _set_key(p, clock, book, cand_time)
-                heap_update(clock, heap_key, heap_int, p)
+                _drop(p, which, schedule, candidates)
+                _set_next(p, schedule, candidates)
+                heap_update(heap, schedule, p)
                 continue
         # Who is predicted after this event, whether their paths changed, and
         # whether it is a crossing (then only the new layer of cells).
-        if record and meta[RECORDED] >= rec_f.shape[0]:
+        if record and counts.recorded >= impacts.time.shape[0]:
             return GROW
         first, second, bump, crossing = p, -1, True, False
         if which == NEXT_REFRESH:
-            meta[CHORES] += 1
-            meta[REFRESHES] += 1
-            if meta[CHORES] > 4 * budget:
+            counts.chores += 1
+            counts.refreshes += 1
+            if counts.chores > 4 * budget:
                 return NOT_EXACT
-            _advance(pos, vel, clock, gravity, half_g, accel, varied, p, when)
+            _advance(settings, particles, supports, schedule, p, when)
             bump = False
         else:
-            if meta[EVENTS] >= budget:
+            if counts.events >= budget:
                 return NOT_EXACT
-            meta[EVENTS] += 1
+            counts.events += 1
         if which == NEXT_REFRESH:
             pass
         elif which >= 0:
-            q = cand_int[p, which, 0]
-            _advance(pos, vel, clock, gravity, half_g, accel, varied, p, when)
-            _advance(pos, vel, clock, gravity, half_g, accel, varied, q, when)
-            rx, ry, rz = vel[p, 0] - vel[q, 0], vel[p, 1] - vel[q, 1], vel[p, 2] - vel[q, 2]
-            nx, ny, nz, _ = line_of_action(pos[p, 0] - pos[q, 0], pos[p, 1] - pos[q, 1],
-                                           pos[p, 2] - pos[q, 2], rx, ry, rz)
+            q = candidates.partner[p, which]
+            _advance(settings, particles, supports, schedule, p, when)
+            _advance(settings, particles, supports, schedule, q, when)
+            rx = velocity[p, 0] - velocity[q, 0]
+            ry = velocity[p, 1] - velocity[q, 1]
+            rz = velocity[p, 2] - velocity[q, 2]
+            nx, ny, nz, _ = line_of_action(position[p, 0] - position[q, 0],
+                                           position[p, 1] - position[q, 1],
+                                           position[p, 2] - position[q, 2], rx, ry, rz)
             if varied and -dot3(rx, ry, rz, nx, ny, nz) > 0.0 and not (
-                    _keeps_supports(rest, p, nx, ny, nz) and _keeps_supports(rest, q, nx, ny, nz)):
+                    _keeps_supports(supports, p, (nx, ny, nz))
+                    and _keeps_supports(supports, q, (nx, ny, nz))):
                 return NOT_EXACT
-            e = pair_restitution(own_e, has_own, p, q, params[P_PAIR_E])
+            e = combined_coefficient(particles.restitution, has_own, p, q,
+                                     settings.pair_restitution)
             if threshold > 0.0 and -dot3(rx, ry, rz, nx, ny, nz) < threshold:
                 e = 0.0
-            if (when - clock[p, C_LAST] < collapse or when - clock[q, C_LAST] < collapse) \
-                    and e < 1.0:
+            if (when - schedule[p].last_impact < collapse
+                    or when - schedule[q].last_impact < collapse) and e < 1.0:
                 if under_gravity:
                     return NOT_EXACT
                 e = 1.0     # TC model: an impact this soon after another is elastic
-            magnitude, approach, removed = pair_impulse(vel, inv_mass, p, q, nx, ny, nz, e,
+            magnitude, approach, removed = pair_impulse(velocity, inv_mass, p, q, nx, ny, nz, e,
                                                         0.0)
             if approach > 0.0:
-                meta[COLLISIONS] += 1
-                meta[BOOKED_PAIRS] = 1
-                totals[0] += removed
+                counts.collisions += 1
+                counts.booked_pairs = 1
+                counts.restitution_dissipated += removed
                 if book_losses:
                     share = inv_mass[p] / (inv_mass[p] + inv_mass[q])
-                    losses[perm[p]] += removed * share
-                    losses[perm[q]] += removed * (1.0 - share)
+                    losses[order[p]] += removed * share
+                    losses[order[q]] += removed * (1.0 - share)
                 if record:
                     # Written with i < j (the world's indices) and the normal
                     # from j to i (``record_pairs``).
-                    i, j, sign = (p, q, 1.0) if perm[p] <= perm[q] else (q, p, -1.0)
+                    i, j, sign = (p, q, 1.0) if order[p] <= order[q] else (q, p, -1.0)
                     mx, my, mz = sign * nx, sign * ny, sign * nz
-                    _record(rec_f, rec_ij, meta, when, perm[i], perm[j],
-                            0.5 * ((pos[i, 0] - radius[i] * mx) + (pos[j, 0] + radius[j] * mx)),
-                            0.5 * ((pos[i, 1] - radius[i] * my) + (pos[j, 1] + radius[j] * my)),
-                            0.5 * ((pos[i, 2] - radius[i] * mz) + (pos[j, 2] + radius[j] * mz)),
-                            mx, my, mz, magnitude, approach)
-            clock[p, C_LAST] = when
-            clock[q, C_LAST] = when
+                    r_i, r_j = radius[i], radius[j]
+                    point = (0.5 * ((position[i, 0] - r_i * mx) + (position[j, 0] + r_j * mx)),
+                             0.5 * ((position[i, 1] - r_i * my) + (position[j, 1] + r_j * my)),
+                             0.5 * ((position[i, 2] - r_i * mz) + (position[j, 2] + r_j * mz)))
+                    _record(impacts, tally, when, order[i], order[j], point, (mx, my, mz),
+                            magnitude, approach)
+            schedule[p].last_impact = when
+            schedule[q].last_impact = when
             if inv_mass[q] > 0.0:      # a static particle's events stay valid
                 second = q
         elif which == NEXT_WALL:
-            _advance(pos, vel, clock, gravity, half_g, accel, varied, p, when)
-            face = book[p, B_WALL]
+            _advance(settings, particles, supports, schedule, p, when)
+            face = schedule[p].wall_face
             axis, side = face // 2, face % 2
             toward = 1.0 if side else -1.0      # direction of the wall along the axis
-            speed_in = toward * vel[p, axis]
-            pushed_in = toward * (accel[p, axis] if varied else gravity[axis])
+            speed_in = toward * velocity[p, axis]
+            pushed_in = toward * (supports.acceleration[p, axis] if varied
+                                  else settings.gravity[axis])
             if speed_in > 0.0 or (speed_in == 0.0 and pushed_in > 0.0):
-                if varied and not _keeps_supports(rest, p, 1.0 if axis == 0 else 0.0,
-                                                  1.0 if axis == 1 else 0.0,
-                                                  1.0 if axis == 2 else 0.0):
+                if varied and not _keeps_supports(supports, p, (1.0 if axis == 0 else 0.0,
+                                                                1.0 if axis == 1 else 0.0,
+                                                                1.0 if axis == 2 else 0.0)):
                     return NOT_EXACT
-                e = wall_restitution(own_e, has_own, p, params[P_WALL_E])
+                e = combined_coefficient(particles.restitution, has_own, p, -1,
+                                         settings.wall_restitution)
                 if threshold > 0.0 and speed_in < threshold:
                     e = 0.0
-                if when - clock[p, C_LAST] < collapse:
+                if when - schedule[p].last_impact < collapse:
                     resting = pushed_in > 0.0 and speed_in < 0.5 * pushed_in * collapse
                     if under_gravity and (e < 1.0 or resting):
                         return NOT_EXACT
                     e = 1.0
-                plane = high[axis] if side else low[axis]
+                plane = settings.high_walls[axis] if side else settings.low_walls[axis]
                 inward = -toward
-                # ``contact_law.apply_wall_impulses`` with no tolerance.
-                approach = -inward * vel[p, axis]
-                change = (1.0 + e) * approach
-                vel[p, axis] += inward * change
-                magnitude = change / inv_mass[p]
-                removed = 0.5 * magnitude * approach * (1.0 - e)
-                meta[BOOKED_WALLS] = 1
-                totals[1] += removed
+                approach = -inward * velocity[p, axis]
+                magnitude, removed = apply_wall_normal(velocity, inv_mass, p, axis, inward, e,
+                                                       approach)
+                counts.booked_walls = 1
+                counts.walls_dissipated += removed
                 if book_losses:
-                    losses[perm[p]] += removed
-                pos[p, axis] = plane - toward * radius[p]   # exact contact, no drift
-                meta[WALL_COLLISIONS] += 1
+                    losses[order[p]] += removed
+                position[p, axis] = plane - toward * radius[p]   # exact contact, no drift
+                counts.wall_collisions += 1
                 if record:
-                    _record(rec_f, rec_ij, meta, when, perm[p], -1,
-                            plane if axis == 0 else pos[p, 0],
-                            plane if axis == 1 else pos[p, 1],
-                            plane if axis == 2 else pos[p, 2],
-                            inward if axis == 0 else 0.0, inward if axis == 1 else 0.0,
-                            inward if axis == 2 else 0.0, magnitude, approach)
-                clock[p, C_LAST] = when
+                    _record(impacts, tally, when, order[p], -1,
+                            (plane if axis == 0 else position[p, 0],
+                             plane if axis == 1 else position[p, 1],
+                             plane if axis == 2 else position[p, 2]),
+                            (inward if axis == 0 else 0.0, inward if axis == 1 else 0.0,
+                             inward if axis == 2 else 0.0), magnitude, approach)
+                schedule[p].last_impact = when
         elif which == NEXT_CELL:
-            meta[CROSSINGS] += 1
-            _advance(pos, vel, clock, gravity, half_g, accel, varied, p, when)
+            counts.crossings += 1
+            _advance(settings, particles, supports, schedule, p, when)
             crossing = True
-        # One site for all predictions: the helpers are inlined here, and
-        # arrays passed to a function that is called cost reference counting.
+        # One site for all predictions: the helpers are inlined here once.
         for k in range(2):
             r = first if k == 0 else second
             if r < 0:
                 continue
             along, offset = -1, 0
             if crossing:
-                along, offset = _enter_cell(r, cell, table, head, nxt, prv, occupancy, book,
-                                            cand_time, cand_int, meta)
+                along, offset = _enter_cell(r, grid, schedule, candidates, tally)
             else:
                 if bump:
-                    book[r, B_COUNT] += 1
-                meta[PREDICTIONS] += 1
-                book[r, B_HELD] = 0
-                clock[r, C_REFRESH] = _INF
-            _own_events(r, pos, vel, radius, gravity, accel, rest, low, high, params, flags, cell,
-                        clock, book, not crossing)
-            _scan(r, when, along, offset, 0, pos, vel, inv_mass, radius, gravity, half_g, accel,
-                  rest, params, flags, cell, table, head, nxt, clock, book, cand_time, cand_int)
-            _set_key(r, clock, book, cand_time)
-            heap_update(clock, heap_key, heap_int, r)
-    for p in range(pos.shape[0]):
-        _advance(pos, vel, clock, gravity, half_g, accel, varied, p, end)
-        k = perm[p]
+                    schedule[r].changes += 1
+                counts.predictions += 1
+                schedule[r].held = 0
+                schedule[r].refresh_time = _INF
+            _own_events(r, settings, particles, supports, grid, schedule, not crossing)
+            _scan(r, when, along, offset, 0, settings, particles, supports, grid, schedule,
+                  candidates)
+            _set_next(r, schedule, candidates)
+            heap_update(heap, schedule, r)
+    for p in range(position.shape[0]):
+        _advance(settings, particles, supports, schedule, p, end)
+        k = order[p]
         for c in range(3):
-            out_pos[k, c] = pos[p, c]
-            out_vel[k, c] = vel[p, c]
+            world.position[k, c] = position[p, c]
+            world.velocity[k, c] = velocity[p, c]
     return DONE
 
 
 @njit(cache=True, error_model='numpy')
-def build_events(when, pos, vel, inv_mass, radius, gravity, accel, rest, low, high, params,
-                 flags, cell, table, head, nxt, prv, occupancy, clock, book, cand_time,
-                 cand_int, heap_key, heap_int, meta):
+def build_events(settings, particles, supports, grid, schedule, candidates, heap, tally):
     """Fill the grid, predict every dynamic particle (each pair once) and order the heap.
 
-    ``clock`` comes with every reference time at ``when``, no impact yet, no
-    events (inf); ``book`` with zero counters.
+    ``schedule`` comes from ``new_schedule`` (every particle at one reference
+    time, no impact yet, nothing predicted).
     """
-    half_g = 0.5 * gravity
-    n = pos.shape[0]
+    n = particles.position.shape[0]
     for p in range(n):
-        _insert(p, cell, table, head, nxt, prv, occupancy, meta)
+        _insert(p, grid, tally)
     for p in range(n):
-        if inv_mass[p] > 0.0:
-            _predict(p, False, p, pos, vel, inv_mass, radius, gravity, half_g, accel, rest,
-                     low, high, params, flags, cell, table, head, nxt, clock, book, cand_time,
-                     cand_int, meta)
+        if particles.inv_mass[p] > 0.0:
+            _predict(p, False, p, settings, particles, supports, grid, schedule, candidates,
+                     tally)
         else:
-            book[p, B_NEXT] = NEXT_NONE
-    heapify(clock, heap_key, heap_int)
+            schedule[p].next_event = NEXT_NONE
+    heapify(heap, schedule)
 
 
 @njit(cache=True)
-def matches(state_pos, state_vel, state_inv_mass, state_radius, pos, vel, inv_mass, radius,
-            perm):
-    """Say whether the world's particles are still the ones the last step published."""
-    for p in range(pos.shape[0]):
-        k = perm[p]
-        if state_inv_mass[k] != inv_mass[p] or state_radius[k] != radius[p]:
+def matches(position, velocity, inv_mass, radius, particles, order):
+    """Say whether the world's particle arrays still hold what the last step published."""
+    for p in range(particles.position.shape[0]):
+        k = order[p]
+        if inv_mass[k] != particles.inv_mass[p] or radius[k] != particles.radius[p]:
             return False
         for c in range(3):
-            if state_pos[k, c] != pos[p, c] or state_vel[k, c] != vel[p, c]:
+            if position[k, c] != particles.position[p, c] \
+                    or velocity[k, c] != particles.velocity[p, c]:
                 return False
     return True
 
 
-def new_arrays(n: int) -> tuple:
-    """Return (clock, book, cand_time, cand_int, heap_key, heap_int) for ``n`` particles.
+def new_schedule(n: int, time: float) -> np.ndarray:
+    """Return ``n`` particles' schedule rows at ``time`` s: no impact yet, nothing predicted."""
+    schedule = np.zeros(n, dtype=SCHEDULE)
+    schedule['reference_time'] = time
+    schedule['last_impact'] = -np.inf
+    for name in ('wall_time', 'crossing_time', 'refresh_time', 'next_time'):
+        schedule[name] = np.inf
+    return schedule
 
-    Nothing predicted yet, no impact yet.
-    """
-    clock = np.full((n, CLOCK_COLUMNS), np.inf)
-    clock[:, C_LAST] = -np.inf
-    book = np.zeros((n, BOOK_COLUMNS), dtype=np.int64)
-    return (clock, book, np.empty((n, CANDIDATES)),
-            np.empty((n, CANDIDATES, 2), dtype=np.int64), np.empty(n),
-            np.empty((2, n), dtype=np.int64))
+
+def new_candidates(n: int) -> Candidates:
+    """Return empty candidate lists for ``n`` particles."""
+    return Candidates(np.empty((n, CANDIDATES)), np.empty((n, CANDIDATES), dtype=np.int64),
+                      np.empty((n, CANDIDATES), dtype=np.int64))
+
+
+def new_heap(n: int) -> Heap:
+    """Return room for a heap of ``n`` particles (``heapify`` orders it)."""
+    return Heap(np.empty(n), np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64))
+
+
+def new_impact_buffer(rows: int) -> ImpactBuffer:
+    """Return room for ``rows`` impacts."""
+    return ImpactBuffer(np.empty(rows), np.empty((rows, 3)), np.empty((rows, 3)),
+                        np.empty(rows), np.empty(rows), np.empty(rows, dtype=np.int64),
+                        np.empty(rows, dtype=np.int64))
+
+
+def grown(impacts: ImpactBuffer) -> ImpactBuffer:
+    """Return an impact buffer twice as long, its rows so far copied."""
+    return ImpactBuffer(*(np.concatenate([field, np.empty_like(field)]) for field in impacts))
+
+
+def new_grid(cell: np.ndarray, table: np.ndarray) -> CellGrid:
+    """Return the empty grid of particles in cells ``cell`` ((n, 3) int64), ``table`` slots."""
+    n, slots = cell.shape[0], int(np.prod(table))
+    return CellGrid(cell, cell % table, table, np.full(slots, -1, dtype=np.int64),
+                    np.full(n, -1, dtype=np.int64), np.full(n, -1, dtype=np.int64),
+                    np.zeros(slots, dtype=np.int64))
 
 
 def warm_up() -> None:
     """Run the kernels once on two particles meeting head on between walls."""
-    pos = np.array([[-0.5, 0.0, 0.0], [0.5, 0.0, 0.0]])
-    vel = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
-    inv_mass, radius = np.ones(2), np.full(2, 0.25)
-    gravity, low, high = np.zeros(3), np.full(3, -1.0), np.full(3, 1.0)
-    params = np.array([1e-5, 0.0, 1.0, 1.0, 0.5, 1.0])
-    flags = np.array([3, 0, 1, 1, 1, 1, 0], dtype=np.int64)
-    accel, rest = new_supports(2, 1)
-    table = np.full(3, 7, dtype=np.int64)
-    cell = np.zeros((2, 6), dtype=np.int64)
-    cell[:, :3] = np.floor(pos / 0.5)
-    cell[:, 3:] = cell[:, :3] % table
-    head, occupancy = np.full(343, -1, dtype=np.int64), np.zeros(343, dtype=np.int64)
-    nxt, prv = np.full(2, -1, dtype=np.int64), np.full(2, -1, dtype=np.int64)
-    clock, book, cand_time, cand_int, heap_key, heap_int = new_arrays(2)
-    clock[:, C_REF] = 0.0
-    meta = np.zeros(META_SIZE, dtype=np.int64)
-    build_events(0.0, pos, vel, inv_mass, radius, gravity, accel, rest, low, high, params,
-                 flags, cell, table, head, nxt, prv, occupancy, clock, book, cand_time, cand_int,
-                 heap_key, heap_int, meta)
-    out_pos, out_vel = pos.copy(), vel.copy()
-    perm = np.arange(2)
-    run_events(1.0, 1000, pos, vel, inv_mass, radius, np.full(2, np.nan), gravity, gravity,
-               accel, rest, low, high, params, flags, cell, table, head, nxt, prv, occupancy,
-               clock, book, cand_time, cand_int, heap_key, heap_int, meta, np.zeros(2),
-               np.zeros(2),
-               np.empty((4, RECORD_COLUMNS)), np.empty((4, 2), dtype=np.int64), perm, out_pos,
-               out_vel)
-    matches(out_pos, out_vel, inv_mass, radius, pos, vel, inv_mass, radius, perm)
+    position = np.array([[-0.5, 0.0, 0.0], [0.5, 0.0, 0.0]])
+    velocity = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    particles = Particles(position, velocity, np.ones(2), np.full(2, 0.25), np.full(2, np.nan))
+    settings = Settings(end=1.0, budget=1000, dimensions=3, cell_size=0.5, collapse_time=1e-5,
+                        threshold=0.0, pair_restitution=1.0, wall_restitution=1.0,
+                        gravity=np.zeros(3), half_gravity=np.zeros(3),
+                        low_walls=np.full(3, -1.0), high_walls=np.full(3, 1.0),
+                        under_gravity=False, has_walls=True, own_restitution=True,
+                        own_acceleration=False, record=True, book_losses=True)
+    supports = new_supports(2)
+    grid = new_grid(np.floor(position / 0.5).astype(np.int64), np.full(3, 7, dtype=np.int64))
+    schedule, candidates, heap = new_schedule(2, 0.0), new_candidates(2), new_heap(2)
+    tally = np.zeros(1, dtype=TALLY)
+    build_events(settings, particles, supports, grid, schedule, candidates, heap, tally)
+    world = WorldArrays(np.arange(2), position.copy(), velocity.copy(), np.zeros(2))
+    run_events(settings, particles, supports, grid, schedule, candidates, heap, tally,
+               new_impact_buffer(4), world)
+    matches(world.position, world.velocity, particles.inv_mass, particles.radius, particles,
+            world.order)
     curved_delay(1.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.5, 1.0)
-
-
-def new_supports(n: int, partners: int) -> tuple:
-    """Return (accel, rest) for ``n`` particles with room for ``partners`` resting partners.
-
-    No particle supported, no partner: read only under ``F_VARIED``.
-    """
-    rest = np.zeros((n, S_PARTNERS + partners), dtype=np.int64)
-    rest[:, S_PARTNERS:] = -1
-    return np.zeros((n, 3)), rest
 
 
 def kernels() -> list:

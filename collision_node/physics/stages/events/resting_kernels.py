@@ -1,46 +1,39 @@
 """Resting contact for the ``exact`` preset, compiled: which particles rest, on what, how.
 
-Under gravity a particle resting on a wall or on other particles would
-meet its support again at once, with zero speed, again and again: no
-event list can step through that. So at the start of each step the event
-stage (``stages/events/event_driven.py``) asks this module which contacts rest
-and gives each particle the constant acceleration its supports leave it,
-for the whole step:
+Under gravity a particle resting on a wall or on other particles would meet
+its support again at once, with zero speed, again and again: no event list
+can step through that. So at the start of each step the event stage
+(``event_driven.py``) asks this module which contacts rest and gives each
+particle the constant acceleration its supports leave it, for the whole step:
 
-1. **Resting contacts**: pairs and walls touching at the step's start (a
-   gap at most ``RESTING_GAP`` of the two radii plus ``RESTING_ULPS``
-   spacings of the coordinates involved; overlaps count) whose normal
-   speed, either way, is below the resting speed (the contact law's
-   restitution threshold: the declared one, or 2 |g| dt under gravity).
-2. **Their normal velocities are set to zero**, by normal impulses
-   (``contact_kernels.push_pair``, the law's pair increment, and its wall
-   twin) in over-relaxed sweeps, then plain Gauss-Seidel ones, until no
-   resting contact moves faster than ``VELOCITY_TOLERANCE`` of the resting
-   speed. Each increment takes kinetic energy out (an increment of w times
-   the one that stops the contact removes w (1 - w/2) of that contact's
-   normal energy: some for 0 < w < 2) and books it to its contact
-   (restitution for pairs, walls for walls).
-3. **Support forces**: the frictionless contact problem on accelerations
-   (each particle's acceleration a = g + the forces on it / m; at every
-   resting contact the relative normal acceleration >= 0, the force >= 0,
-   one of them 0), solved by projected Gauss-Seidel (over-relaxed, then
-   plain) started from the previous step's forces; the accelerations are
-   then summed afresh from the forces. A particle whose acceleration is
-   not g is *supported*.
+1. **Resting contacts** (``collect``): pairs and walls touching at the
+   step's start (a gap at most ``RESTING_GAP`` of the two radii plus
+   ``RESTING_ULPS`` spacings of the coordinates involved; overlaps count)
+   whose normal speed, either way, is below the resting speed (the contact
+   law's restitution threshold: the declared one, or 2 |g| dt).
+2. **Their normal velocities are set to zero** (``project_velocities``) by
+   normal impulses (the law's ``push_pair`` and its wall twin) in
+   over-relaxed, then plain Gauss-Seidel sweeps, until no resting contact
+   moves faster than the tolerance. Each increment's kinetic energy is
+   booked to its contact (restitution for pairs, walls for walls).
+3. **Support forces** (``support_forces``): the frictionless contact
+   problem on accelerations (a = g + forces / m; at every resting contact
+   relative normal acceleration >= 0, force >= 0, one of them 0) by
+   projected Gauss-Seidel started from the previous step's forces. A
+   particle whose acceleration is not g is *supported* (``Supports``).
 
-Within the step a supported particle follows its own parabola
-x0 + v0 t + a t^2 / 2; its resting contacts (with a supported particle
-on either side) are not predicted (their normal relative velocity and
-acceleration are zero: they neither close nor open), and an impact that
-would change a support's normal speed ends the step's exact attempt (the
-stage then falls back, counted). With the supports fixed for the step this is
-exact for a column or a packed pile at rest and first order in dt for a
-cluster that slides (its contact normals turn within the step).
+Within the step a supported particle follows its own parabola; its resting
+contacts are not predicted (they neither close nor open), and an impact
+that would change a support's normal speed ends the step's exact attempt
+(the stage falls back). With the supports fixed for the step this is exact
+for a column or a packed pile at rest and first order in dt for a cluster
+that slides.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -53,10 +46,36 @@ from ...model.tunables import (RESTING_GAP, RESTING_ULPS, PARTNERS, OVER_RELAXAT
 _EPSILON = 2.220446049250313e-16
 # Status: the supports are found; or a particle has more resting partners than PARTNERS.
 FOUND, TOO_MANY = 0, 1
-# Columns of ``info`` (float64): velocity sweeps, force sweeps, largest
-# normal speed left (m/s), largest relative acceleration change left (m/s^2).
-I_V_SWEEPS, I_A_SWEEPS, I_V_LEFT, I_A_LEFT = range(4)
-INFO_SIZE = 4
+# How the sweeps went (one row): sweeps of each solve and what each left.
+SWEEPS = np.dtype([
+    ('velocity_sweeps', np.int64),
+    ('force_sweeps', np.int64),
+    ('speed_left', np.float64),          # m/s: the largest normal speed left
+    ('acceleration_left', np.float64),   # m/s^2: the largest relative acceleration change left
+])
+
+
+class RestingContacts(NamedTuple):
+    """Room for the resting contacts (every candidate pair and 2 dims walls per particle)."""
+
+    first: np.ndarray           # (m,) int64: a particle
+    second: np.ndarray          # (m,) int64: the other particle, or -2 - face for a wall
+    normal: np.ndarray          # (m, 3): from second to first (a wall's: inward)
+
+
+class Supports(NamedTuple):
+    """Each particle's acceleration for the step and what it rests on (no rows: none)."""
+
+    acceleration: np.ndarray    # (n, 3) m/s^2: g + its support forces / m (0: static)
+    supported: np.ndarray       # (n,) int64: 1 when its acceleration is not g
+    wall_mask: np.ndarray       # (n,) int64: a bit per wall it rests on (bit = 2 axis + side)
+    partners: np.ndarray        # (n, PARTNERS) int64: particles, a wall as -2 - face; -1 ends
+
+
+def new_supports(n: int) -> Supports:
+    """Return supports for ``n`` particles: nobody supported, every acceleration 0."""
+    return Supports(np.zeros((n, 3)), np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64),
+                    np.full((n, PARTNERS), -1, dtype=np.int64))
 
 
 @njit(cache=True, inline='always')
@@ -66,18 +85,18 @@ def _spacing(x):
 
 
 @njit(cache=True)
-def collect(position, velocity, inv_mass, radius, cand_i, cand_j, low, high, dims,
-            rest_speed, c_i, c_j, c_normal):
-    """Write the resting contacts into (c_i, c_j, c_normal); return their count.
+def collect(position, velocity, inv_mass, radius, pair_first, pair_second, low_walls,
+            high_walls, dimensions, rest_speed, contacts):
+    """Write the resting contacts into ``contacts``; return their count.
 
-    Pairs come from the candidates (i, j) (N from j to i); a wall contact
-    has c_j = -2 - face (face = 2 axis + side, side 1 the high wall) and N
-    its inward normal. ``c_*`` hold room for every candidate and 2 dims walls
-    per particle.
+    Pairs come from the candidate pairs (N from second to first); a wall
+    contact has second = -2 - face (face = 2 axis + side, side 1 the high
+    wall) and N its inward normal.
     """
+    first, second, normal = contacts.first, contacts.second, contacts.normal
     m = 0
-    for k in range(cand_i.shape[0]):
-        i, j = cand_i[k], cand_j[k]
+    for k in range(pair_first.shape[0]):
+        i, j = pair_first[k], pair_second[k]
         if inv_mass[i] == 0.0 and inv_mass[j] == 0.0:
             continue
         dx = position[i, 0] - position[j, 0]
@@ -96,16 +115,16 @@ def collect(position, velocity, inv_mass, radius, cand_i, cand_j, low, high, dim
             continue
         if abs(dot3(rx, ry, rz, nx, ny, nz)) > rest_speed:
             continue
-        c_i[m], c_j[m] = i, j
-        c_normal[m, 0], c_normal[m, 1], c_normal[m, 2] = nx, ny, nz
+        first[m], second[m] = i, j
+        normal[m, 0], normal[m, 1], normal[m, 2] = nx, ny, nz
         m += 1
     n = position.shape[0]
     for p in range(n):
         if inv_mass[p] == 0.0:
             continue
-        for axis in range(dims):
+        for axis in range(dimensions):
             for side in range(2):
-                plane = high[axis] if side else low[axis]
+                plane = high_walls[axis] if side else low_walls[axis]
                 if not math.isfinite(plane):
                     continue
                 inward = -1.0 if side else 1.0
@@ -114,16 +133,16 @@ def collect(position, velocity, inv_mass, radius, cand_i, cand_j, low, high, dim
                     max(abs(position[p, axis]), abs(plane)))
                 if gap > tolerance or abs(velocity[p, axis]) > rest_speed:
                     continue
-                c_i[m], c_j[m] = p, -2 - (2 * axis + side)
-                c_normal[m, 0] = c_normal[m, 1] = c_normal[m, 2] = 0.0
-                c_normal[m, axis] = inward
+                first[m], second[m] = p, -2 - (2 * axis + side)
+                normal[m, 0] = normal[m, 1] = normal[m, 2] = 0.0
+                normal[m, axis] = inward
                 m += 1
     return m
 
 
 @njit(cache=True, inline='always')
 def _wall_axis(code):
-    """Return the axis of a wall contact's code (c_j = -2 - face)."""
+    """Return the axis of a wall contact's code (second = -2 - face)."""
     return (-2 - code) // 2
 
 
@@ -152,8 +171,8 @@ def _push_wall(v, inv_mass, p, axis, inward, magnitude):
 
 
 @njit(cache=True)
-def project_velocities(velocity, inv_mass, m, c_i, c_j, c_normal, tolerance, removed, info):
-    """Set every resting contact's normal speed to zero (either way); book what it removes.
+def project_velocities(velocity, inv_mass, contacts, m, tolerance, removed, info):
+    """Set the first ``m`` contacts' normal speeds to zero (either way); book what it removes.
 
     ``removed[k]`` (J) sums contact k's increments. Over-relaxed, then plain
     Gauss-Seidel sweeps until no normal speed exceeds ``tolerance`` (m/s)
@@ -163,22 +182,22 @@ def project_velocities(velocity, inv_mass, m, c_i, c_j, c_normal, tolerance, rem
         removed[k] = 0.0
     sweeps = 0
     for relaxation in (OVER_RELAXATION, 1.0):
-        sweeps += _velocity_sweeps(velocity, inv_mass, m, c_i, c_j, c_normal, tolerance,
-                                   removed, relaxation, info)
-    info[I_V_SWEEPS] = sweeps
+        sweeps += _velocity_sweeps(velocity, inv_mass, contacts, m, tolerance, removed,
+                                   relaxation, info)
+    info[0].velocity_sweeps = sweeps
 
 
 @njit(cache=True)
-def _velocity_sweeps(velocity, inv_mass, m, c_i, c_j, c_normal, tolerance, removed, relaxation,
-                     info):
+def _velocity_sweeps(velocity, inv_mass, contacts, m, tolerance, removed, relaxation, info):
     """Run ``project_velocities``' sweeps at one relaxation; return how many."""
+    first, second, normal = contacts.first, contacts.second, contacts.normal
     sweeps, left = 0, 0.0
     while sweeps < MAX_SWEEPS:
         sweeps += 1
         left = 0.0
         for k in range(m):
-            i, j = c_i[k], c_j[k]
-            nx, ny, nz = c_normal[k, 0], c_normal[k, 1], c_normal[k, 2]
+            i, j = first[k], second[k]
+            nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
             speed, w = _normal_part(velocity, inv_mass, i, j, nx, ny, nz)
             if speed == 0.0:
                 continue
@@ -192,86 +211,90 @@ def _velocity_sweeps(velocity, inv_mass, m, c_i, c_j, c_normal, tolerance, remov
                                          magnitude)
         if left <= tolerance:
             break
-    info[I_V_LEFT] = left
+    info[0].speed_left = left
     return sweeps
 
 
 @njit(cache=True)
-def support_forces(accel, inv_mass, gravity, m, c_i, c_j, c_normal, force, tolerance, info):
-    """Solve the resting contacts' forces (N) and each particle's acceleration (m/s^2).
+def support_forces(acceleration, inv_mass, gravity, contacts, m, force, tolerance, info):
+    """Solve the first ``m`` contacts' forces (N) and each particle's acceleration (m/s^2).
 
     ``force[k]`` comes in as the warm start (clamped at 0) and leaves as the
-    solution; ``accel`` leaves as g + the contact forces / m (0 for a static
-    particle). Projected over-relaxed, then plain Gauss-Seidel sweeps until
-    no force changes a relative acceleration by more than ``tolerance``
-    (m/s^2) (or ``MAX_SWEEPS`` of each);
-    then the accelerations are summed afresh from the forces, so that the
-    round-off of thousands of increments does not stay in them.
+    solution; ``acceleration`` leaves as g + the contact forces / m (0 for a
+    static particle). Projected over-relaxed, then plain Gauss-Seidel sweeps
+    until no force changes a relative acceleration by more than
+    ``tolerance`` (m/s^2) (or ``MAX_SWEEPS`` of each); then the
+    accelerations are summed afresh from the forces, so that the round-off
+    of thousands of increments does not stay in them.
     """
-    n = accel.shape[0]
+    first, second = contacts.first, contacts.second
+    n = acceleration.shape[0]
     for p in range(n):
         for c in range(3):
-            accel[p, c] = gravity[c] if inv_mass[p] > 0.0 else 0.0
+            acceleration[p, c] = gravity[c] if inv_mass[p] > 0.0 else 0.0
     for k in range(m):
         force[k] = max(force[k], 0.0)
         if force[k] > 0.0:
-            _apply_force(accel, inv_mass, c_i[k], c_j[k], c_normal, k, force[k])
+            _apply_force(acceleration, inv_mass, first[k], second[k], contacts.normal, k,
+                         force[k])
     sweeps = 0
     for relaxation in (OVER_RELAXATION, 1.0):
-        sweeps += _force_sweeps(accel, inv_mass, m, c_i, c_j, c_normal, force, tolerance,
+        sweeps += _force_sweeps(acceleration, inv_mass, contacts, m, force, tolerance,
                                 relaxation, info)
-    info[I_A_SWEEPS] = sweeps
+    info[0].force_sweeps = sweeps
     for p in range(n):
         for c in range(3):
-            accel[p, c] = gravity[c] if inv_mass[p] > 0.0 else 0.0
+            acceleration[p, c] = gravity[c] if inv_mass[p] > 0.0 else 0.0
     for k in range(m):
         if force[k] > 0.0:
-            _apply_force(accel, inv_mass, c_i[k], c_j[k], c_normal, k, force[k])
+            _apply_force(acceleration, inv_mass, first[k], second[k], contacts.normal, k,
+                         force[k])
 
 
 @njit(cache=True)
-def _force_sweeps(accel, inv_mass, m, c_i, c_j, c_normal, force, tolerance, relaxation, info):
+def _force_sweeps(acceleration, inv_mass, contacts, m, force, tolerance, relaxation, info):
     """Run ``support_forces``' sweeps at one relaxation; return how many."""
+    first, second, normal = contacts.first, contacts.second, contacts.normal
     sweeps, left = 0, 0.0
     while sweeps < MAX_SWEEPS:
         sweeps += 1
         left = 0.0
         for k in range(m):
-            i, j = c_i[k], c_j[k]
-            nx, ny, nz = c_normal[k, 0], c_normal[k, 1], c_normal[k, 2]
-            opening, w = _normal_part(accel, inv_mass, i, j, nx, ny, nz)
+            i, j = first[k], second[k]
+            nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
+            opening, w = _normal_part(acceleration, inv_mass, i, j, nx, ny, nz)
             new = max(force[k] - relaxation * opening / w, 0.0)
             change = new - force[k]
             if change == 0.0:
                 continue
             left = max(left, abs(change) * w)
             force[k] = new
-            _apply_force(accel, inv_mass, i, j, c_normal, k, change)
+            _apply_force(acceleration, inv_mass, i, j, normal, k, change)
         if left <= tolerance:
             break
-    info[I_A_LEFT] = left
+    info[0].acceleration_left = left
     return sweeps
 
 
 @njit(cache=True, inline='always')
-def _apply_force(accel, inv_mass, i, j, c_normal, k, change):
+def _apply_force(acceleration, inv_mass, i, j, normal, k, change):
     """Add a force ``change`` (N) along contact k's normal to its particles' accelerations."""
     if j >= 0:
         ka, kb = change * inv_mass[i], change * inv_mass[j]
         for c in range(3):
-            accel[i, c] += ka * c_normal[k, c]
-            accel[j, c] -= kb * c_normal[k, c]
+            acceleration[i, c] += ka * normal[k, c]
+            acceleration[j, c] -= kb * normal[k, c]
     else:
         axis = _wall_axis(j)
-        accel[i, axis] += change * inv_mass[i] * c_normal[k, axis]
+        acceleration[i, axis] += change * inv_mass[i] * normal[k, axis]
 
 
 @njit(cache=True)
-def warm_forces(m, c_i, c_j, old_partner, old_force, force):
+def warm_forces(contacts, m, old_partner, old_force, force):
     """Start each contact's force from the last step's on the same contact (0 if new)."""
     for k in range(m):
         force[k] = 0.0
-        i, j = c_i[k], c_j[k]
+        i, j = contacts.first[k], contacts.second[k]
         if i >= old_partner.shape[0]:
             continue
         for s in range(old_partner.shape[1]):
@@ -281,28 +304,30 @@ def warm_forces(m, c_i, c_j, old_partner, old_force, force):
 
 
 @njit(cache=True)
-def supports(accel, inv_mass, gravity, m, c_i, c_j, force, supported, partner, partner_force,
-             wall_mask):
-    """Mark supported particles and their resting contacts; return FOUND or TOO_MANY.
+def supports(inv_mass, gravity, contacts, m, force, found, partner_force):
+    """Mark supported particles and their resting contacts in ``found``; return FOUND or TOO_MANY.
 
-    A dynamic particle is supported when its acceleration is not g. Each
-    contact with a supported particle on either side is listed at both
-    (``partner``, -1 padded; a wall as -2 - face, also in the bit mask
-    ``wall_mask``), with its force (the next step's warm start).
+    ``found.acceleration`` holds the solved accelerations; a dynamic particle
+    is supported when its acceleration is not g. Each contact with a
+    supported particle on either side is listed at both (``partners``, -1
+    padded; a wall as -2 - face, also in the bit mask ``wall_mask``), with
+    its force in ``partner_force`` (the next step's warm start).
     """
-    n = accel.shape[0]
+    acceleration, supported, wall_mask = found.acceleration, found.supported, found.wall_mask
+    partner = found.partners
+    n = acceleration.shape[0]
     for p in range(n):
         supported[p] = 0
         wall_mask[p] = 0
         if inv_mass[p] > 0.0:
             for c in range(3):
-                if accel[p, c] != gravity[c]:
+                if acceleration[p, c] != gravity[c]:
                     supported[p] = 1
         for s in range(partner.shape[1]):
             partner[p, s] = -1
     status = FOUND
     for k in range(m):
-        i, j = c_i[k], c_j[k]
+        i, j = contacts.first[k], contacts.second[k]
         if j >= 0:
             if not (supported[i] or supported[j]):
                 continue
@@ -327,6 +352,12 @@ def _add_partner(partner, partner_force, p, q, value):
     return False
 
 
+def new_contacts(size: int) -> RestingContacts:
+    """Return room for ``size`` resting contacts."""
+    return RestingContacts(np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64),
+                           np.empty((size, 3)))
+
+
 def warm_up() -> None:
     """Run the kernels once on a ball resting on a floor under another ball."""
     position = np.array([[0.0, 0.5, 0.0], [0.0, 1.5, 0.0]])
@@ -334,21 +365,19 @@ def warm_up() -> None:
     inv_mass, radius = np.ones(2), np.full(2, 0.5)
     low, high = np.array([-np.inf, 0.0, -np.inf]), np.full(3, np.inf)
     gravity = np.array([0.0, -9.81, 0.0])
-    cand_i, cand_j = np.array([0], dtype=np.int64), np.array([1], dtype=np.int64)
+    pair_first, pair_second = np.array([0], dtype=np.int64), np.array([1], dtype=np.int64)
     size = 1 + 2 * 2 * 3
-    c_i, c_j = np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64)
-    c_normal, removed, force = np.empty((size, 3)), np.empty(size), np.empty(size)
-    info = np.zeros(INFO_SIZE)
-    m = collect(position, velocity, inv_mass, radius, cand_i, cand_j, low, high, 3, 0.1, c_i,
-                c_j, c_normal)
-    project_velocities(velocity, inv_mass, m, c_i, c_j, c_normal, 1e-12, removed, info)
-    partner = np.full((2, PARTNERS), -1, dtype=np.int64)
+    contacts = new_contacts(size)
+    removed, force = np.empty(size), np.empty(size)
+    info = np.zeros(1, dtype=SWEEPS)
+    m = collect(position, velocity, inv_mass, radius, pair_first, pair_second, low, high, 3, 0.1,
+                contacts)
+    project_velocities(velocity, inv_mass, contacts, m, 1e-12, removed, info)
+    found = new_supports(2)
     partner_force = np.zeros((2, PARTNERS))
-    warm_forces(m, c_i, c_j, partner, partner_force, force)
-    accel = np.empty((2, 3))
-    support_forces(accel, inv_mass, gravity, m, c_i, c_j, c_normal, force, 1e-12, info)
-    supports(accel, inv_mass, gravity, m, c_i, c_j, force, np.zeros(2, dtype=np.int64),
-             partner, partner_force, np.zeros(2, dtype=np.int64))
+    warm_forces(contacts, m, found.partners, partner_force, force)
+    support_forces(found.acceleration, inv_mass, gravity, contacts, m, force, 1e-12, info)
+    supports(inv_mass, gravity, contacts, m, force, found, partner_force)
 
 
 def kernels() -> list:
