@@ -7,25 +7,45 @@ step's framework and the motion stages, with the same floating-point
 operations in the same order as the numpy statements they replace:
 
 - ``apply_gravity``: x += g dt^2 / 2, v += g dt for the dynamic particles
-  (``stages.gravity``);
-- ``rotate_orientations``: the spin stage's quaternion update in place
-  (``stages.spin.rotate`` is the numpy statement; sin and cos may differ
-  from numpy's in the last bit, which only the orientation sees);
+  (``stages.motion.gravity``);
+- ``rotate_orientations``: the spin stage's quaternion update in place;
 - ``all_finite``: the world's check that no position or velocity became
   NaN or inf;
 - ``add_losses`` and ``add_pair_losses``: ``StepContext.book``'s per-particle
   attribution, the same sequential additions as ``np.add.at``;
-- ``finish_lift``: ``energy.lift``'s quotient -m g . dx without its masks.
+- ``finish_lift``: ``energy.lift``'s quotient -m g . dx without its masks;
+- ``union_root``: the union-find of the separation and sleeping kernels.
+
+``ParticleArrays`` is the record of the state's arrays that the contact
+stages' kernels take (``particle_arrays`` builds it once per call).
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
 from . import numba_cache  # noqa: F401,I100 (chooses numba's cache directory first)
 from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
+
+
+class ParticleArrays(NamedTuple):
+    """The particle arrays a contact kernel reads, contiguous float64, one row per particle."""
+
+    position: np.ndarray        # (n, 3), m
+    velocity: np.ndarray        # (n, 3), m/s
+    radius: np.ndarray          # (n,), m
+    inv_mass: np.ndarray        # (n,), 1/kg (0: static)
+
+
+def particle_arrays(state) -> ParticleArrays:
+    """Return ``state``'s arrays as a ``ParticleArrays`` (copies only where not contiguous)."""
+    return ParticleArrays(np.ascontiguousarray(state.position, dtype=np.float64),
+                          np.ascontiguousarray(state.velocity, dtype=np.float64),
+                          np.ascontiguousarray(state.radius, dtype=np.float64),
+                          np.ascontiguousarray(state.inv_mass, dtype=np.float64))
 
 
 @njit(cache=True)
@@ -40,7 +60,7 @@ def apply_gravity(position, velocity, inv_mass, shift, kick):
 
 @njit(cache=True)
 def rotate_orientations(orientation, angular_velocity, dt):
-    """Rotate quaternions [x, y, z, w] in place by angular_velocity * dt (``spin.rotate``)."""
+    """Rotate quaternions [x, y, z, w] in place by angular_velocity * dt."""
     for p in range(orientation.shape[0]):
         wx, wy, wz = angular_velocity[p, 0], angular_velocity[p, 1], angular_velocity[p, 2]
         rate = math.sqrt(wx * wx + wy * wy + wz * wz)

@@ -89,8 +89,8 @@ def search_pairs(position: np.ndarray, reach: np.ndarray) -> PairSearch:
         return PairSearch(_EMPTY, _EMPTY, None)
     reach = np.ascontiguousarray(reach, dtype=np.float64)
     grid = grid_kernels.make_grid(position, reach, size_classes(reach))
-    i, j = grid_kernels.grid_pairs(reach, *grid)
-    return PairSearch(i, j, grid)
+    pairs = grid_kernels.grid_pairs(reach, grid)
+    return PairSearch(pairs.first, pairs.second, grid)
 
 
 def candidate_pairs(position: np.ndarray, reach: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -130,8 +130,8 @@ class BroadphaseStage(Stage):
         self._built_position: Optional[np.ndarray] = None
         self._built_radius: Optional[np.ndarray] = None
         self._half_skin = 0.0
-        self._radius = np.zeros(0)             # the listed radii, in the grid's item order
-        self._class_radius = np.zeros(0)       # each size class's largest radius
+        # The listed radii in the grid's item order, and each size class's largest.
+        self._partners = grid_kernels.Partners(np.zeros(0), np.zeros(0))
         self._all_pairs = (_EMPTY, _EMPTY)
         self._all_pairs_count = -1
         self._median_radius, self._median_of = 0.0, None
@@ -216,8 +216,7 @@ class BroadphaseStage(Stage):
         self._keys = self._search.i * n + self._search.j
         self._built_position = grid_kernels.as_points(position).copy()
         self._built_radius = radius
-        self._radius, self._class_radius = grid_kernels.partner_terms(radius,
-                                                                      self._search.grid)
+        self._partners = grid_kernels.partner_terms(radius, self._search.grid)
         self.searches += 1
 
     def _with_mover_pairs(self, position: np.ndarray, radius: np.ndarray,
@@ -230,18 +229,19 @@ class BroadphaseStage(Stage):
         # listed position is within r_i + r_j + skin/2 of the mover now.
         # With an allowance e_j <= skin/2 - displacement_j for non-movers,
         # the same bound holds with the mover's own e added.
-        near_i, near_j = grid_kernels.grid_query(
-            grid_kernels.as_points(position), movers, mover_reach, self._radius,
-            self._class_radius, *self._search.grid)
+        near = grid_kernels.grid_query(grid_kernels.as_points(position), movers, mover_reach,
+                                       self._partners, self._search.grid)
         # Movers against movers, at their current positions (all pairs if few).
         if movers.size <= ALL_PAIRS_UP_TO:
             between_i, between_j = np.triu_indices(movers.size, k=1)
         else:
             between = search_pairs(position[movers], radius[movers] + extra[movers])
             between_i, between_j = between.i, between.j
-        return grid_kernels.merge_pairs(self._keys, self._search.i, self._search.j,
-                                        np.concatenate([near_i, movers[between_i]]),
-                                        np.concatenate([near_j, movers[between_j]]), n)
+        listed = grid_kernels.Pairs(self._search.i, self._search.j)
+        extra_pairs = grid_kernels.Pairs(np.concatenate([near.first, movers[between_i]]),
+                                         np.concatenate([near.second, movers[between_j]]))
+        merged = grid_kernels.merge_pairs(self._keys, listed, extra_pairs, n)
+        return merged.first, merged.second
 
     def describe(self) -> str:
         """Say what the stage does."""

@@ -1,37 +1,34 @@
 """The broadphase's searches, compiled: a hashed cell grid per size class.
 
-``stages.broadphase`` splits particles into size classes whose reaches
-differ by less than a factor of two (``size_classes``). Each class gets a
-uniform grid of cubic cells, twice its largest reach wide, built by a
-counting sort: the cells are hashed into a table of about twice as many
-buckets as the class has particles, so the grid costs O(n) memory whatever
-the scene's extent (a particle at 1e9 m next to a cluster at the origin
-adds one bucket, not 1e9 / cell cells), and each bucket's particles are
-stored contiguously with their cell and position (cache-friendly scans).
+``broadphase.size_classes`` splits particles into classes whose reaches
+differ by less than a factor of two. Each class gets a uniform grid of
+cubic cells, twice its largest reach wide, built by a counting sort: cells
+are hashed into about twice as many buckets as the class has particles, so
+the grid costs O(n) memory whatever the scene's extent (a particle at 1e9 m
+next to a cluster at the origin adds one bucket, not 1e9 / cell cells), and
+each bucket's particles are stored contiguously with their cell and
+position (cache-friendly scans). A class whose occupied box is small gets a
+dense table instead (one bucket per cell, no hashing).
 
 A particle of reach r is searched in its own class and in every larger
-class k, within r + R_k of its centre (R_k the class's largest reach):
-at most 3 cells per axis, because r <= R_k and the cells are 2 R_k wide.
-A large particle is never searched with a small one's grid, and a small
-one never with a large one's reach, so the work stays proportional to the
-number of near pairs for any mix of sizes. Every pair found is kept only
-if |p_i - p_j|^2 <= (reach_i + reach_j)^2 (1 + 1e-9), the test of the
-vectorised ``_near`` written in the same floating-point order, so the
-result is exactly the set the k-d tree search gave; pairs come out sorted
-by (i, j) (a counting sort by i, then each row sorted by j).
+class k, within r + R_k of its centre (R_k the class's largest reach): at
+most 3 cells per axis, because r <= R_k and the cells are 2 R_k wide. A
+large particle is never searched with a small one's grid, nor a small one
+with a large one's reach, so the work stays proportional to the number of
+near pairs for any mix of sizes. A pair is kept only if
+|p_i - p_j|^2 <= (reach_i + reach_j)^2 (1 + PAIR_SLACK); pairs come out
+sorted by (i, j) (a counting sort by i, then each row sorted by j).
 
-A scene of one size class in a dense table (a gas) takes a shorter path,
+One size class in a dense table (a gas) takes a shorter path,
 ``_dense_pairs``: cells are a little wider than any search (CELL_MARGIN),
 so each item scans its own row of cells from itself on and the next four
-rows in cell order (the later half of the 3 x 3 rows around it), without
-computing a search box; every candidate is written and kept by the count
-(no branch on the near test). The set and order are the same.
+rows in cell order, without computing a search box, and every candidate is
+written and kept by the count (no branch on the near test).
 
-Cell indices are measured from the lowest corner of all particles and the
+Cell indices are measured from the lowest corner of all particles and a
 cell is never narrower than the scene's extent / 2^40, so they fit in
-64-bit integers at any scale (a wider cell only adds candidates; the exact
-test keeps the answer the same). A query box wider than the class has
-particles (a very fast mover) scans the class's particles directly.
+64-bit integers at any scale. A query box with more cells than the class
+has particles (a very fast mover) scans the class's particles directly.
 """
 
 from __future__ import annotations
@@ -70,6 +67,13 @@ class Grid(NamedTuple):
     item_position: np.ndarray   # (n, 3) position of each item, m
 
 
+class Pairs(NamedTuple):
+    """Particle index pairs (first[k], second[k]): what a search returns."""
+
+    first: np.ndarray
+    second: np.ndarray
+
+
 @njit(cache=True, inline='always')
 def _hash(cx, cy, cz, mask):
     """Return the bucket of cell (cx, cy, cz) in a table of mask + 1 buckets."""
@@ -86,7 +90,7 @@ def _dense_bucket(cx, cy, cz, lx, ly, lz, nx, ny):
 
 @njit(cache=True)
 def build_grid(position, reach, order, class_start):
-    """Build every class's grid; see ``Grid`` for the returned arrays.
+    """Return every class's grid (``Grid``).
 
     ``order`` lists the particles class by class (``class_start`` slices);
     within a class the items are sorted by bucket, in ``order``'s order. A
@@ -175,13 +179,13 @@ def build_grid(position, reach, order, class_start):
         for b in range(table_start[k + 1] - 1, base, -1):
             bucket[b] = bucket[b - 1] + class_start[k]
         bucket[base] = class_start[k]
-    return (corner, cell, class_reach, class_start, low, high, dense, table_start, bucket, item,
-            item_cell, item_position)
+    return Grid(corner, cell, class_reach, class_start, low, high, dense, table_start, bucket,
+                item, item_cell, item_position)
 
 
 @njit(cache=True, inline='always')
 def _near(ax, ay, az, bx, by, bz, limit):
-    """Return the vectorised ``_near``: |a - b|^2 <= limit^2 (1 + slack), in einsum's order."""
+    """Return |a - b|^2 <= limit^2 (1 + PAIR_SLACK), the offset's square summed as einsum does."""
     ox, oy, oz = ax - bx, ay - by, az - bz
     return dot3(ox, oy, oz, ox, oy, oz) <= limit * limit * (1.0 + PAIR_SLACK)
 
@@ -189,32 +193,33 @@ def _near(ax, ay, az, bx, by, bz, limit):
 @njit(cache=True, inline='always')
 def _cell_range(value, search, corner, cell, low, high):
     """Return the first and last cell index (clipped to low..high) within value +- search."""
-    a = max(np.floor((value - search - corner) / cell), float(low))
-    b = min(np.floor((value + search - corner) / cell), float(high))
-    return a, b
+    first = max(np.floor((value - search - corner) / cell), float(low))
+    last = min(np.floor((value + search - corner) / cell), float(high))
+    return first, last
 
 
 @njit(cache=True, inline='always')
-def _scan_class(corner, cell, class_start, low, high, dense, table_start, bucket, item, item_cell,
-                item_position, k, x, y, z, search, query, after, own_reach, partner,
-                out_a, out_b, count):
-    """Write (query, j) for every item j of class k near (x, y, z); return the new count.
+def _scan_class(grid, k, point, search, query, after, own_reach, partner, out_a, out_b, count):
+    """Write (query, j) for every item j of class k near ``point``; return the new count.
 
-    The box searched is ``search`` around the point; each candidate (item
-    t, particle j) is kept when |p - p_j| is within own_reach + partner[t]
-    (``partner`` in item order); only items t > ``after`` are taken (a
-    class searched against itself from item ``after``: each pair once).
-    Pairs beyond the buffers' size are counted, not written: the caller
-    grows the buffers and searches again.
+    The box searched is ``search`` around the point (x, y, z); each
+    candidate (item t, particle j) is kept when |point - p_j| is within
+    own_reach + partner[t] (``partner`` in item order); only items t >
+    ``after`` are taken (a class searched against itself from item
+    ``after``: each pair once). Pairs beyond the buffers' size are counted,
+    not written: the caller grows the buffers and searches again.
     """
-    width = cell[k]
-    ax, bx = _cell_range(x, search, corner[0], width, low[k, 0], high[k, 0])
-    ay, by = _cell_range(y, search, corner[1], width, low[k, 1], high[k, 1])
-    az, bz = _cell_range(z, search, corner[2], width, low[k, 2], high[k, 2])
+    x, y, z = point
+    item, item_cell, item_position = grid.item, grid.item_cell, grid.item_position
+    bucket, low, high = grid.bucket, grid.low, grid.high
+    width = grid.cell[k]
+    ax, bx = _cell_range(x, search, grid.corner[0], width, low[k, 0], high[k, 0])
+    ay, by = _cell_range(y, search, grid.corner[1], width, low[k, 1], high[k, 1])
+    az, bz = _cell_range(z, search, grid.corner[2], width, low[k, 2], high[k, 2])
     if ax > bx or ay > by or az > bz:
         return count
     capacity = out_a.size
-    start, stop = max(class_start[k], after + 1), class_start[k + 1]
+    start, stop = max(grid.class_start[k], after + 1), grid.class_start[k + 1]
     if (bx - ax + 1.0) * (by - ay + 1.0) * (bz - az + 1.0) > stop - start:
         # A box with more cells than there are particles to test: test them all.
         for t in range(start, stop):
@@ -224,8 +229,9 @@ def _scan_class(corner, cell, class_start, low, high, dense, table_start, bucket
                     out_a[count], out_b[count] = query, item[t]
                 count += 1
         return count
-    base, mask = table_start[k], table_start[k + 1] - table_start[k] - 2
-    if dense[k]:
+    base = grid.table_start[k]
+    mask = grid.table_start[k + 1] - base - 2
+    if grid.dense[k]:
         # One range of items per row of cells along x (the cells are exact).
         # Items are sorted by row, so rows before ``after``'s are empty of
         # items past it: the scan starts at the later of az and its layer.
@@ -267,7 +273,7 @@ def _grown(out, count, size):
 
 @njit(cache=True)
 def sort_pairs(a, b, count, n):
-    """Return pairs (min, max) of the first ``count`` of (a, b) sorted by (i, j).
+    """Return the ``Pairs`` (min, max) of the first ``count`` of (a, b), sorted by (i, j).
 
     A counting sort by i, then each row sorted by j (insertion sort for
     short rows). Pairs are assumed distinct.
@@ -278,181 +284,190 @@ def sort_pairs(a, b, count, n):
     for r in range(n):
         row[r + 1] += row[r]
     fill = row[:n].copy()
-    i, j = np.empty(count, dtype=np.int64), np.empty(count, dtype=np.int64)
+    first, second = np.empty(count, dtype=np.int64), np.empty(count, dtype=np.int64)
     for p in range(count):
         lo, hi = min(a[p], b[p]), max(a[p], b[p])
-        i[fill[lo]], j[fill[lo]] = lo, hi
+        first[fill[lo]], second[fill[lo]] = lo, hi
         fill[lo] += 1
     for r in range(n):
         start, stop = row[r], row[r + 1]
         if stop - start > 32:
-            j[start:stop] = np.sort(j[start:stop])
+            second[start:stop] = np.sort(second[start:stop])
             continue
         for s in range(start + 1, stop):
-            value = j[s]
+            value = second[s]
             t = s - 1
-            while t >= start and j[t] > value:
-                j[t + 1] = j[t]
+            while t >= start and second[t] > value:
+                second[t + 1] = second[t]
                 t -= 1
-            j[t + 1] = value
-    return i, j
+            second[t + 1] = value
+    return Pairs(first, second)
 
 
 @njit(cache=True, inline='always')
-def _append_near(t0, t1, x, y, z, own, query, item, item_position, partner, out_a, out_b,
-                 count):
-    """Append (query, item[t]) for items t0 <= t < t1 near (x, y, z); return the new count.
+def _append_near(first, stop, point, own_reach, query, item, item_position, partner, out_a,
+                 out_b, count):
+    """Append (query, item[t]) for items first <= t < stop near ``point``; return the count.
 
     Branch-free: every candidate is written and the count advances only
-    for a near one (the caller guarantees room for t1 - t0 more pairs), so
-    a near test that is true one time in six costs no mispredicted branch.
+    for a near one (the caller guarantees room for stop - first more
+    pairs), so a near test that is true one time in six costs no
+    mispredicted branch.
     """
-    for t in range(t0, t1):
+    x, y, z = point
+    for t in range(first, stop):
         out_a[count] = query
         out_b[count] = item[t]
         count += _near(x, y, z, item_position[t, 0], item_position[t, 1], item_position[t, 2],
-                       own + partner[t])
+                       own_reach + partner[t])
     return count
 
 
 @njit(cache=True)
-def _dense_pairs(item_reach, low, high, table_start, bucket, item, item_cell, item_position,
-                 out_a, out_b):
+def _dense_pairs(grid, item_reach, out_a, out_b):
     """Write the unsorted pairs of a grid of one dense class; return their count.
 
     Returns -1 when ``out_a`` / ``out_b`` may be too short (the caller
     grows them and calls again): growing them here would make numba count
-    references to the buffers at every candidate, which doubled the cost.
+    references to the buffers at every candidate, which doubles the cost.
     Cells are wider than any search (CELL_MARGIN), so the items t > m of
     the neighbour cells of item m's cell are exactly those of five rows of
     cells along x: its own (from m on) and the next four in cell order (the
     half of the 3 x 3 rows around it that comes later), each one range of
     items. The exact test is ``_near``'s, so the set is ``_scan_class``'s.
     """
+    item, item_cell, item_position = grid.item, grid.item_cell, grid.item_position
+    low, high, bucket = grid.low, grid.high, grid.bucket
     n = item.size
     capacity = out_a.size
     count = 0
     lx, ly, lz = low[0, 0], low[0, 1], low[0, 2]
     nx, ny, nz = high[0, 0] - lx + 1, high[0, 1] - ly + 1, high[0, 2] - lz + 1
-    base = table_start[0]
+    base = grid.table_start[0]
     for m in range(n):
-        x, y, z = item_position[m, 0], item_position[m, 1], item_position[m, 2]
-        own = item_reach[m]
+        point = (item_position[m, 0], item_position[m, 1], item_position[m, 2])
+        own_reach = item_reach[m]
         query = item[m]
         cx, cy, cz = item_cell[m, 0] - lx, item_cell[m, 1] - ly, item_cell[m, 2] - lz
-        first, last = max(cx - 1, 0), min(cx + 1, nx - 1)
+        first_cell, last_cell = max(cx - 1, 0), min(cx + 1, nx - 1)
         for r in range(5):
             # Rows (cy, cz), (cy + 1, cz), then (cy - 1 .. cy + 1, cz + 1).
             ry, rz = (cy + r, cz) if r < 2 else (cy + r - 3, cz + 1)
             if ry < 0 or ry >= ny or rz >= nz:
                 continue
             row = base + (rz * ny + ry) * nx
-            t0 = m + 1 if r == 0 else bucket[row + first]
-            t1 = bucket[row + last + 1]
-            if count + (t1 - t0) > capacity:
+            first = m + 1 if r == 0 else bucket[row + first_cell]
+            stop = bucket[row + last_cell + 1]
+            if count + (stop - first) > capacity:
                 return -1
-            count = _append_near(t0, t1, x, y, z, own, query, item, item_position, item_reach,
-                                 out_a, out_b, count)
+            count = _append_near(first, stop, point, own_reach, query, item, item_position,
+                                 item_reach, out_a, out_b, count)
     return count
 
 
 @njit(cache=True)
-def _dense_grid_pairs(reach, low, high, table_start, bucket, item, item_cell, item_position):
-    """Return ``grid_pairs`` of a grid of one dense class (sorted by (i, j))."""
-    n = item.size
-    item_reach = np.empty(n)
-    for m in range(n):
+def _items_reach(reach, item):
+    """Return ``reach`` in the grid's item order."""
+    item_reach = np.empty(item.size)
+    for m in range(item.size):
         item_reach[m] = reach[item[m]]
+    return item_reach
+
+
+@njit(cache=True)
+def _dense_grid_pairs(reach, grid):
+    """Return ``grid_pairs`` of a grid of one dense class (sorted by (i, j))."""
+    n = grid.item.size
+    item_reach = _items_reach(reach, grid.item)
     size = 4 * n + 64
     while True:
         out_a, out_b = np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64)
-        count = _dense_pairs(item_reach, low, high, table_start, bucket, item, item_cell,
-                             item_position, out_a, out_b)
+        count = _dense_pairs(grid, item_reach, out_a, out_b)
         if count >= 0:
             return sort_pairs(out_a, out_b, count, n)
         size *= 4
 
 
 @njit(cache=True)
-def grid_pairs(reach, corner, cell, class_reach, class_start, low, high, dense, table_start,
-               bucket, item, item_cell, item_position):
-    """Return every pair (i < j, sorted) with |p_i - p_j| <= reach_i + reach_j (and slack).
+def grid_pairs(reach, grid):
+    """Return the ``Pairs`` (i < j, sorted) with |p_i - p_j| <= reach_i + reach_j (and slack).
 
     Positions are the grid's (as built). Each particle is searched in its
     own class (each pair once, from its earlier item) and in every larger
     class.
     """
-    n = item.size
-    if class_start.size == 2 and dense[0] and cell[0] >= CELL_REACHES * class_reach[0] * (
-            1.0 + CELL_MARGIN) and np.max(high[0] - low[0]) < DENSE_AXIS_CELLS:
+    item_position, class_start, class_reach = grid.item_position, grid.class_start, \
+        grid.class_reach
+    n = grid.item.size
+    if class_start.size == 2 and grid.dense[0] and grid.cell[0] >= CELL_REACHES * \
+            class_reach[0] * (1.0 + CELL_MARGIN) and \
+            np.max(grid.high[0] - grid.low[0]) < DENSE_AXIS_CELLS:
         # One dense class (a gas): the neighbour-cell scan, no search boxes.
-        return _dense_grid_pairs(reach, low, high, table_start, bucket, item, item_cell,
-                                 item_position)
-    item_reach = np.empty(n)
-    for m in range(n):
-        item_reach[m] = reach[item[m]]
+        return _dense_grid_pairs(reach, grid)
+    item_reach = _items_reach(reach, grid.item)
     out_a, out_b = np.empty(2 * n + 16, dtype=np.int64), np.empty(2 * n + 16, dtype=np.int64)
     count = 0
     classes = class_start.size - 1
     for k in range(classes):
         # Items in cell order: neighbouring queries touch the same memory.
         for m in range(class_start[k], class_start[k + 1]):
-            i = item[m]
-            x, y, z = item_position[m, 0], item_position[m, 1], item_position[m, 2]
-            own = reach[i]
+            particle = grid.item[m]
+            point = (item_position[m, 0], item_position[m, 1], item_position[m, 2])
+            own_reach = reach[particle]
             for other in range(k, classes):
-                search = (own + class_reach[other]) * (1.0 + SCAN_SLACK)
+                search = (own_reach + class_reach[other]) * (1.0 + SCAN_SLACK)
+                after = m if other == k else -1
                 before = count
-                count = _scan_class(corner, cell, class_start, low, high, dense, table_start,
-                                    bucket, item, item_cell, item_position, other, x, y, z,
-                                    search, i, m if other == k else -1, own, item_reach,
-                                    out_a, out_b, count)
+                count = _scan_class(grid, other, point, search, particle, after, own_reach,
+                                    item_reach, out_a, out_b, count)
                 if count > out_a.size:
                     out_a = _grown(out_a, before, 2 * count)
                     out_b = _grown(out_b, before, 2 * count)
-                    count = _scan_class(corner, cell, class_start, low, high, dense, table_start,
-                                        bucket, item, item_cell, item_position, other, x, y, z,
-                                        search, i, m if other == k else -1, own,
+                    count = _scan_class(grid, other, point, search, particle, after, own_reach,
                                         item_reach, out_a, out_b, before)
     return sort_pairs(out_a, out_b, count, n)
 
 
-@njit(cache=True)
-def grid_query(position, query, query_reach, partner, class_partner, corner, cell,
-               class_reach, class_start, low, high, dense, table_start, bucket, item,
-               item_cell, item_position):
-    """Return (a, b): each query particle a = query[q] against every item b near it.
+class Partners(NamedTuple):
+    """What a mover query adds to its own reach, in the grid's item order."""
 
-    Near: |position[a] - p_b| <= query_reach[q] + partner[t] (p_b the
-    grid's position of b, item t; ``partner`` in item order);
-    ``class_partner`` holds each class's largest ``partner``. Pairs come
-    in query order, unsorted, a == b included.
+    item_reach: np.ndarray      # (n,) each item's listed reach, m
+    class_reach: np.ndarray     # (classes,) the largest of each class, m
+
+
+@njit(cache=True)
+def grid_query(position, query, query_reach, partners, grid):
+    """Return ``Pairs`` (a, b): each query particle a = query[q] against every item b near it.
+
+    Near: |position[a] - p_b| <= query_reach[q] + partners.item_reach[t]
+    (p_b the grid's position of b, item t). Pairs come in query order,
+    unsorted, a == b included.
     """
     out_a = np.empty(16 * query.size + 16, dtype=np.int64)
     out_b = np.empty(16 * query.size + 16, dtype=np.int64)
+    partner, class_partner = partners.item_reach, partners.class_reach
     count = 0
     for q in range(query.size):
-        a = query[q]
-        x, y, z = position[a, 0], position[a, 1], position[a, 2]
-        for k in range(class_start.size - 1):
-            search = (query_reach[q] + class_partner[k]) * (1.0 + SCAN_SLACK)
+        particle = query[q]
+        point = (position[particle, 0], position[particle, 1], position[particle, 2])
+        own_reach = query_reach[q]
+        for k in range(grid.class_start.size - 1):
+            search = (own_reach + class_partner[k]) * (1.0 + SCAN_SLACK)
             before = count
-            count = _scan_class(corner, cell, class_start, low, high, dense, table_start, bucket,
-                                item, item_cell, item_position, k, x, y, z, search, a, -1,
-                                query_reach[q], partner, out_a, out_b, count)
+            count = _scan_class(grid, k, point, search, particle, -1, own_reach, partner,
+                                out_a, out_b, count)
             if count > out_a.size:
                 out_a = _grown(out_a, before, 2 * count)
                 out_b = _grown(out_b, before, 2 * count)
-                count = _scan_class(corner, cell, class_start, low, high, dense, table_start,
-                                    bucket, item, item_cell, item_position, k, x, y, z, search,
-                                    a, -1, query_reach[q], partner, out_a, out_b, before)
-    return out_a[:count], out_b[:count]
+                count = _scan_class(grid, k, point, search, particle, -1, own_reach, partner,
+                                    out_a, out_b, before)
+    return Pairs(out_a[:count], out_b[:count])
 
 
-def partner_terms(values: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
+def partner_terms(values: np.ndarray, grid: Grid) -> Partners:
     """Return ``values`` in the grid's item order and the largest of each class."""
     in_order = np.ascontiguousarray(values, dtype=np.float64)[grid.item]
-    return in_order, np.maximum.reduceat(in_order, grid.class_start[:-1])
+    return Partners(in_order, np.maximum.reduceat(in_order, grid.class_start[:-1]))
 
 
 @njit(cache=True)
@@ -471,39 +486,40 @@ def movers(position, built, extra, half_skin):
 
 
 @njit(cache=True)
-def merge_pairs(keys, list_i, list_j, a, b, n):
-    """Return the listed pairs joined with pairs (a, b): sorted by (i, j), i != j, no repeats.
+def merge_pairs(keys, listed, extra, n):
+    """Return the listed ``Pairs`` joined with ``extra``: sorted by (i, j), i != j, no repeats.
 
-    ``keys`` are the sorted i * n + j of the listed pairs (``list_i``,
-    ``list_j``). The listed pairs are copied, not split from their keys:
-    two integer divisions per pair cost more than the whole merge.
+    ``keys`` are the sorted i * n + j of the ``listed`` pairs. The listed
+    pairs are copied, not split from their keys: two integer divisions per
+    pair cost more than the whole merge.
     """
-    add = np.empty(a.size, dtype=np.int64)
+    a, b = extra.first, extra.second
+    added = np.empty(a.size, dtype=np.int64)
     count = 0
     for p in range(a.size):
         if a[p] != b[p]:
-            add[count] = min(a[p], b[p]) * n + max(a[p], b[p])
+            added[count] = min(a[p], b[p]) * n + max(a[p], b[p])
             count += 1
-    add = np.sort(add[:count])
+    added = np.sort(added[:count])
     out_i = np.empty(keys.size + count, dtype=np.int64)
     out_j = np.empty(keys.size + count, dtype=np.int64)
     s = t = m = 0
     last = -1
     while s < keys.size or t < count:
-        if t == count or (s < keys.size and keys[s] <= add[t]):
+        if t == count or (s < keys.size and keys[s] <= added[t]):
             value = keys[s]
             if value != last:
-                out_i[m], out_j[m] = list_i[s], list_j[s]
+                out_i[m], out_j[m] = listed.first[s], listed.second[s]
                 m += 1
             s += 1
         else:
-            value = add[t]
+            value = added[t]
             if value != last:
                 out_i[m], out_j[m] = value // n, value % n
                 m += 1
             t += 1
         last = value
-    return out_i[:m], out_j[:m]
+    return Pairs(out_i[:m], out_j[:m])
 
 
 def as_points(position: np.ndarray) -> np.ndarray:
@@ -522,8 +538,8 @@ def make_grid(position: np.ndarray, reach: np.ndarray, classes: list) -> Grid:
         np.ascontiguousarray(classes[0], dtype=np.int64)
     class_start = np.zeros(len(classes) + 1, dtype=np.int64)
     class_start[1:] = np.cumsum([members.size for members in classes])
-    return Grid(*build_grid(as_points(position), np.ascontiguousarray(reach, dtype=np.float64),
-                            order, class_start))
+    return build_grid(as_points(position), np.ascontiguousarray(reach, dtype=np.float64),
+                      order, class_start)
 
 
 def warm_up() -> None:
@@ -531,11 +547,11 @@ def warm_up() -> None:
     position = np.array([[0.0, 0.0, 0.0], [1.5, 0.0, 0.0], [9.0, 0.0, 0.0]])
     reach = np.array([1.0, 1.0, 3.0])
     grid = make_grid(position, reach, [np.array([0, 1]), np.array([2])])
-    grid_pairs(reach, *grid)
+    grid_pairs(reach, grid)
     query = np.array([0], dtype=np.int64)
-    a, b = grid_query(position, query, reach[query], *partner_terms(reach, grid), *grid)
+    near = grid_query(position, query, reach[query], partner_terms(reach, grid), grid)
     keys = np.array([1], dtype=np.int64)
-    merge_pairs(keys, keys // 3, keys % 3, a, b, 3)
+    merge_pairs(keys, Pairs(keys // 3, keys % 3), near, 3)
     movers(position, position, np.zeros(3), 0.5)
 
 

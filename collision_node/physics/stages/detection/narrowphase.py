@@ -5,10 +5,10 @@ N = (p1 - p2) / |p1 - p2|. The distance is computed after scaling each
 offset by its largest component, so offsets of 1e-300 m (whose squares
 underflow to zero) still give an exact unit normal.
 
-``find_contacts`` is the vectorised statement; the stage runs the same
-operations compiled (``contact_kernels.find_overlaps``, backend 'kernel',
-the default), which keeps the same pairs with the same normals and
-penetrations (``test/test_separation_kernels.py``).
+``find_contacts`` runs the test compiled (``narrowphase_kernels``);
+``line_of_action`` is the same statement vectorised, for the stages that
+need normals of many offsets at once (the swept contacts). The tests keep
+a vectorised reference of the whole test (``test/oracles``).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import numpy as np
 
 from .narrowphase_kernels import find_overlaps
 from ...step.pipeline import Contacts, Stage, StepContext
-from ...model.tunables import BACKENDS
+from ...step.step_kernels import ParticleArrays
 
 
 def line_of_action(offset: np.ndarray, relative_velocity: np.ndarray
@@ -50,45 +50,20 @@ def line_of_action(offset: np.ndarray, relative_velocity: np.ndarray
 
 
 def find_contacts(position: np.ndarray, velocity: np.ndarray, radius: np.ndarray,
-                  inv_mass: np.ndarray, i: np.ndarray, j: np.ndarray) -> Contacts:
-    """Return the overlapping pairs among candidates (i, j) of dynamic particles."""
-    # Cheap prefilter on squared distances, a little generous so that it
-    # keeps every pair the exact test below keeps (offsets that underflow
-    # square to 0 and pass; none can overflow within the validated bounds).
-    offset = position[i] - position[j]
-    reach = radius[i] + radius[j]
-    near = np.einsum('ij,ij->i', offset, offset) <= reach * reach * (1.0 + 1e-9)
-    if not near.any():
+                  inv_mass: np.ndarray, first: np.ndarray, second: np.ndarray) -> Contacts:
+    """Return the overlapping pairs among candidates (first, second), one compiled pass."""
+    if first.shape[0] == 0:
         return Contacts.empty()
-    i, j = i[near], j[near]
-    movable = (inv_mass[i] + inv_mass[j]) > 0.0
-    i, j = i[movable], j[movable]
-    normal, distance = line_of_action(position[i] - position[j], velocity[i] - velocity[j])
-    reach = radius[i] + radius[j]
-    overlapping = distance < reach
-    return Contacts(i=i[overlapping], j=j[overlapping], normal=normal[overlapping],
-                    penetration=(reach - distance)[overlapping])
-
-
-def find_contacts_compiled(position: np.ndarray, velocity: np.ndarray, radius: np.ndarray,
-                           inv_mass: np.ndarray, i: np.ndarray, j: np.ndarray) -> Contacts:
-    """Return what ``find_contacts`` returns, from one compiled pass over the candidates."""
-    m = i.shape[0]
-    if m == 0:
+    particles = ParticleArrays(np.ascontiguousarray(position, dtype=float),
+                               np.ascontiguousarray(velocity, dtype=float),
+                               np.ascontiguousarray(radius, dtype=float),
+                               np.ascontiguousarray(inv_mass, dtype=float))
+    found = find_overlaps(particles, np.ascontiguousarray(first, dtype=np.int64),
+                          np.ascontiguousarray(second, dtype=np.int64))
+    if found.first.size == 0:
         return Contacts.empty()
-    out_i, out_j = np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64)
-    normal, penetration = np.empty((m, 3)), np.empty(m)
-    kept = find_overlaps(np.ascontiguousarray(position, dtype=float),
-                         np.ascontiguousarray(velocity, dtype=float),
-                         np.ascontiguousarray(radius, dtype=float),
-                         np.ascontiguousarray(inv_mass, dtype=float),
-                         np.ascontiguousarray(i, dtype=np.int64),
-                         np.ascontiguousarray(j, dtype=np.int64), out_i, out_j, normal,
-                         penetration)
-    if kept == 0:
-        return Contacts.empty()
-    return Contacts(i=out_i[:kept], j=out_j[:kept], normal=normal[:kept],
-                    penetration=penetration[:kept])
+    return Contacts(i=found.first, j=found.second, normal=found.normal,
+                    penetration=found.penetration)
 
 
 class NarrowphaseStage(Stage):
@@ -96,18 +71,11 @@ class NarrowphaseStage(Stage):
 
     name = 'narrowphase'
 
-    def __init__(self, backend: str = 'kernel') -> None:
-        """Choose the compiled pass ('kernel') or the vectorised reference ('numpy')."""
-        if backend not in BACKENDS:
-            raise ValueError(f'backend must be one of {BACKENDS}, got {backend!r}')
-        self.backend = backend
-
     def run(self, ctx: StepContext) -> None:
         """Store contacts on the context."""
         s = ctx.state
-        find = find_contacts_compiled if self.backend == 'kernel' else find_contacts
-        ctx.contacts = find(s.position, s.velocity, s.radius, s.inv_mass, ctx.pair_i,
-                            ctx.pair_j)
+        ctx.contacts = find_contacts(s.position, s.velocity, s.radius, s.inv_mass, ctx.pair_i,
+                                     ctx.pair_j)
         if len(ctx.contacts):
             deepest = float(ctx.contacts.penetration.max())
             ctx.stats.max_penetration = max(ctx.stats.max_penetration, deepest)

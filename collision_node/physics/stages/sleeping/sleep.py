@@ -41,7 +41,8 @@ from scipy.spatial import cKDTree
 
 from ...model import energy
 from ...model.effects import GRAVITY_THRESHOLD_STEPS
-from .sleep_kernels import near_sleepers, settle_islands, sleepers_within_reach
+from .sleep_kernels import (IslandParticles, Islands, near_sleepers, settle_islands,
+                            sleepers_within_reach, Stillness, WakeReach)
 from ...model.state import ParticleState
 from ...step.pipeline import Pipeline, Stage, StepContext
 from ...model.tunables import CONTACT_MARGIN, DIRECT_PAIRS
@@ -139,12 +140,13 @@ class WakeStage(Stage):
         sleepers = np.flatnonzero(s.asleep)
         dt = ctx.dt
         sag = self.sag * dt * dt
+        wake_reach = WakeReach(CONTACT_MARGIN, float(dt), float(sag))
         if awake.size * sleepers.size <= DIRECT_PAIRS and _rows(s.position) \
                 and _rows(s.velocity):
             # Few particles: test every pair in one compiled loop (the same
             # test as below, without the tree's query and its Python lists).
-            near = sleepers_within_reach(s.position, s.radius, s.velocity, awake, sleepers,
-                                         CONTACT_MARGIN, dt, sag)
+            near = sleepers_within_reach(s.position, s.velocity, s.radius, awake, sleepers,
+                                         wake_reach)
             if near.any():
                 wake_islands(s, sleepers[near], reset=False)
             return
@@ -160,12 +162,12 @@ class WakeStage(Stage):
         counts = np.fromiter(map(len, hits), dtype=np.int64, count=len(hits))
         if not counts.sum():
             return
-        ci = np.repeat(np.arange(awake.size), counts)
-        cj = np.concatenate([np.asarray(h, dtype=np.int64) for h in hits if h])
-        near = near_sleepers(s.position, s.radius, s.velocity, awake, sleepers, CONTACT_MARGIN,
-                             dt, sag, ci, cj)
+        candidate_awake = np.repeat(np.arange(awake.size), counts)
+        candidate_sleeper = np.concatenate([np.asarray(h, dtype=np.int64) for h in hits if h])
+        near = near_sleepers(s.position, s.velocity, s.radius, awake, sleepers, candidate_awake,
+                             candidate_sleeper, wake_reach)
         if near.any():
-            wake_islands(s, sleepers[cj[near]], reset=False)
+            wake_islands(s, sleepers[candidate_sleeper[near]], reset=False)
 
     def describe(self) -> str:
         """Say what the stage does."""
@@ -185,7 +187,8 @@ class SleepStage(Stage):
         self.gravity = np.asarray(gravity, dtype=float)
         self.sleep_time = float(sleep_time)
         self._dt: Optional[float] = None
-        self._sag = self._speed = 0.0
+        self._wake_reach = WakeReach(CONTACT_MARGIN, 0.0, 0.0)
+        self._stillness = Stillness(0.0, self.sleep_time)
 
     def run(self, ctx: StepContext) -> None:
         """Decide which islands sleep after this step."""
@@ -200,8 +203,9 @@ class SleepStage(Stage):
         if dt != self._dt:
             # The sleep speed and the sag, computed once per dt.
             self._dt = dt
-            self._sag = 0.5 * float(np.linalg.norm(self.gravity)) * dt * dt
-            self._speed = sleep_speed(self.gravity, dt)
+            sag = 0.5 * float(np.linalg.norm(self.gravity)) * dt * dt
+            self._wake_reach = WakeReach(CONTACT_MARGIN, float(dt), float(sag))
+            self._stillness = Stillness(float(sleep_speed(self.gravity, dt)), self.sleep_time)
         rep = np.full(n, -1, dtype=np.int64)
         sleeping = np.flatnonzero(s.asleep)
         if sleeping.size:
@@ -212,10 +216,12 @@ class SleepStage(Stage):
         pair_i = ctx.pair_i if ctx.pair_i is not None else _NO_PAIRS
         pair_j = ctx.pair_j if ctx.pair_j is not None else _NO_PAIRS
         angular = s.angular_velocity if s.angular_velocity is not None else _NO_SPIN
-        fell = settle_islands(s.position, s.velocity, angular, s.radius, s.inv_mass > 0.0,
-                              s.asleep, rep, np.ascontiguousarray(pair_i, dtype=np.int64),
-                              np.ascontiguousarray(pair_j, dtype=np.int64), CONTACT_MARGIN,
-                              self._sag, s.still_time, dt, self._speed, self.sleep_time)
+        particles = IslandParticles(s.position, s.velocity, angular, s.radius,
+                                    s.inv_mass > 0.0)
+        fell = settle_islands(particles, Islands(s.asleep, rep, s.still_time),
+                              np.ascontiguousarray(pair_i, dtype=np.int64),
+                              np.ascontiguousarray(pair_j, dtype=np.int64), self._wake_reach,
+                              self._stillness)
         s.island = np.where(s.asleep, s.ids[np.maximum(rep, 0)], -1)
         rows = np.flatnonzero(fell)
         if rows.size:

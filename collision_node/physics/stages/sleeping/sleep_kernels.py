@@ -12,6 +12,7 @@ for the sleep time, otherwise its sleeping members wake.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -19,6 +20,39 @@ from ...step import numba_cache  # noqa: F401,I100 (chooses numba's cache direct
 from ...step.step_kernels import union_root  # noqa: I100
 
 from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
+
+
+class IslandParticles(NamedTuple):
+    """The particle arrays the islands are found from (one row per particle)."""
+
+    position: np.ndarray            # (n, 3), m
+    velocity: np.ndarray            # (n, 3), m/s
+    angular_velocity: np.ndarray    # (n, 3) rad/s, or (0, 3) without spin
+    radius: np.ndarray              # (n,), m
+    dynamic: np.ndarray             # (n,) bool: finite (real) mass
+
+
+class Islands(NamedTuple):
+    """The sleeping state, updated in place by ``settle_islands``."""
+
+    asleep: np.ndarray              # (n,) bool
+    representative: np.ndarray      # (n,) int64: each sleeper's island representative, -1 awake
+    still_time: np.ndarray          # (n,) seconds each particle has stayed still
+
+
+class WakeReach(NamedTuple):
+    """How near two particles link (or wake): margin x radii sum + their travel in a step."""
+
+    margin: float                   # share of the radii sum (CONTACT_MARGIN)
+    dt: float                       # the step, s
+    sag: float                      # |g| dt^2 / 2, m
+
+
+class Stillness(NamedTuple):
+    """When a particle is still and when a still island sleeps."""
+
+    speed: float                    # speeds (and spin x radius) below this are still, m/s
+    sleep_time: float               # an island sleeps once all stayed still this long, s
 
 
 @njit(cache=True)
@@ -29,22 +63,22 @@ def _travel(velocity, p, dt, sag):
 
 
 @njit(cache=True)
-def settle_islands(position, velocity, angular, radius, dynamic, asleep, rep, pi, pj, margin,
-                   sag, still_time, dt, speed, sleep_time):
+def settle_islands(particles, islands, pair_first, pair_second, wake_reach, stillness):
     """Update timers and islands in place; return the mask of particles that fell asleep.
 
-    ``dynamic``: particles of finite (real) mass; ``asleep`` and ``rep``
-    (each sleeping particle's island representative, a row; -1 awake) are
-    updated. Pairs (pi, pj) link when their gap is at most ``margin``
-    times the radii sum plus both particles' travel in the next step
-    (``sag`` = |g| dt^2 / 2 is part of it), the reach at which an awake
-    particle would wake a sleeping one; two sleeping particles link through
-    their representatives. ``angular`` has a row per particle or none.
-    Sleeping particles' velocities are left to the caller (who books the
-    kinetic energy before zeroing it).
+    Pairs link when their gap is at most ``wake_reach``: the margin times the
+    radii sum plus both particles' travel in the next step, the reach at
+    which an awake particle would wake a sleeping one; two sleeping
+    particles link through their representatives. Sleeping particles'
+    velocities are left to the caller (who books the kinetic energy before
+    zeroing it).
     """
+    position, velocity, radius = particles.position, particles.velocity, particles.radius
+    angular, dynamic = particles.angular_velocity, particles.dynamic
+    asleep, rep, still_time = islands.asleep, islands.representative, islands.still_time
+    margin, dt, sag = wake_reach.margin, wake_reach.dt, wake_reach.sag
     n = position.shape[0]
-    limit = speed * speed
+    limit = stillness.speed * stillness.speed
     spun = angular.shape[0] == n
     for p in range(n):
         if not dynamic[p] or asleep[p]:
@@ -56,8 +90,8 @@ def settle_islands(position, velocity, angular, radius, dynamic, asleep, rep, pi
             still = (wx * wx + wy * wy + wz * wz) * radius[p] * radius[p] < limit
         still_time[p] = still_time[p] + dt if still else 0.0
     parent = np.arange(n)
-    for k in range(pi.size):
-        a, b = pi[k], pj[k]
+    for k in range(pair_first.size):
+        a, b = pair_first[k], pair_second[k]
         if not (dynamic[a] and dynamic[b]) or (asleep[a] and asleep[b]):
             continue
         reach = margin * (radius[a] + radius[b])
@@ -96,7 +130,7 @@ def settle_islands(position, velocity, angular, radius, dynamic, asleep, rep, pi
         c = root[p]
         if not awake[c]:
             continue        # an island asleep as a whole stays as it is
-        if least[c] >= sleep_time:
+        if least[c] >= stillness.sleep_time:
             if not asleep[p]:
                 fell[p] = True
                 asleep[p] = True
@@ -111,16 +145,19 @@ def settle_islands(position, velocity, angular, radius, dynamic, asleep, rep, pi
 
 
 @njit(cache=True)
-def near_sleepers(position, radius, velocity, awake, sleepers, margin, dt, sag, ci, cj):
-    """Return the mask of candidate pairs (awake ci, sleeping cj) within waking reach.
+def near_sleepers(position, velocity, radius, awake, sleepers, candidate_awake,
+                  candidate_sleeper, wake_reach):
+    """Return the mask of candidate pairs (awake, sleeping) within waking reach.
 
-    The reach is the radii sum times (1 + ``margin``) plus the awake
-    particle's travel in the step (``settle_islands`` links the same
-    pairs).
+    Candidate k pairs awake[candidate_awake[k]] with
+    sleepers[candidate_sleeper[k]]; the reach is the radii sum times
+    (1 + margin) plus the awake particle's travel in the step
+    (``settle_islands`` links the same pairs).
     """
-    hit = np.zeros(ci.size, dtype=np.bool_)
-    for k in range(ci.size):
-        a, b = awake[ci[k]], sleepers[cj[k]]
+    margin, dt, sag = wake_reach.margin, wake_reach.dt, wake_reach.sag
+    hit = np.zeros(candidate_awake.size, dtype=np.bool_)
+    for k in range(candidate_awake.size):
+        a, b = awake[candidate_awake[k]], sleepers[candidate_sleeper[k]]
         reach = (1.0 + margin) * (radius[a] + radius[b]) + _travel(velocity, a, dt, sag)
         dx = position[a, 0] - position[b, 0]
         dy = position[a, 1] - position[b, 1]
@@ -130,12 +167,13 @@ def near_sleepers(position, radius, velocity, awake, sleepers, margin, dt, sag, 
 
 
 @njit(cache=True)
-def sleepers_within_reach(position, radius, velocity, awake, sleepers, margin, dt, sag):
+def sleepers_within_reach(position, velocity, radius, awake, sleepers, wake_reach):
     """Return the mask of ``sleepers`` within waking reach of any of ``awake``.
 
     Every pair is tested with ``near_sleepers``' test (no tree), which for
     a few hundred particles costs less than building the tree's query.
     """
+    margin, dt, sag = wake_reach.margin, wake_reach.dt, wake_reach.sag
     hit = np.zeros(sleepers.size, dtype=np.bool_)
     for q in range(awake.size):
         a = awake[q]
@@ -157,13 +195,14 @@ def warm_up() -> None:
     position = np.array([[0.0, 0.0, 0.0], [1.9, 0.0, 0.0]])
     velocity = np.zeros((2, 3))
     radius = np.ones(2)
-    pair = np.array([0], dtype=np.int64), np.array([1], dtype=np.int64)
-    settle_islands(position, velocity, np.zeros((2, 3)), radius, np.ones(2, dtype=bool),
-                   np.zeros(2, dtype=bool), np.full(2, -1, dtype=np.int64), pair[0], pair[1],
-                   0.02, 0.0, np.zeros(2), 0.01, 0.1, 0.5)
-    near_sleepers(position, radius, velocity, pair[0], pair[1], 0.02, 0.01, 0.0, pair[0],
-                  pair[0])
-    sleepers_within_reach(position, radius, velocity, pair[0], pair[1], 0.02, 0.01, 0.0)
+    first, second = np.array([0], dtype=np.int64), np.array([1], dtype=np.int64)
+    wake_reach = WakeReach(0.02, 0.01, 0.0)
+    particles = IslandParticles(position, velocity, np.zeros((2, 3)), radius,
+                                np.ones(2, dtype=bool))
+    islands = Islands(np.zeros(2, dtype=bool), np.full(2, -1, dtype=np.int64), np.zeros(2))
+    settle_islands(particles, islands, first, second, wake_reach, Stillness(0.1, 0.5))
+    near_sleepers(position, velocity, radius, first, second, first, first, wake_reach)
+    sleepers_within_reach(position, velocity, radius, first, second, wake_reach)
 
 
 def kernels() -> list:
