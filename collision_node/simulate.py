@@ -5,7 +5,10 @@ state and statistics as JSON. A bad scene or argument exits with code 2
 and one line on stderr, before any step is taken (``--out`` included).
 Ctrl-C (SIGINT) or SIGTERM stops the run at a step boundary: the summary
 and the JSON of the state reached (``"interrupted": true``) are still
-written, and the exit code is 130.
+written, and the exit code is 130. ``--record PATH`` also writes the run
+as a rosbag2 bag (MCAP) of what the node would publish, stamped with
+simulated time (:mod:`collision_node.recording`; it needs the ROS 2
+message packages, imported only then).
 """
 
 from __future__ import annotations
@@ -59,6 +62,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument('--explain', action='store_true',
                         help='print the step pipeline and exit')
     parser.add_argument('--quiet', action='store_true', help='no summary on stdout')
+    parser.add_argument('--record', metavar='PATH',
+                        help='also write the run as a rosbag2 bag (MCAP) in the new folder PATH')
+    parser.add_argument('--record-rate', type=float, metavar='HZ',
+                        help='frames per simulated second in the bag (default: 30, the '
+                        "node's publish_rate; at most one per step)")
     parser.add_argument('--accuracy', help='preset (fast, balanced, accurate, exact) or a '
                         'YAML/JSON mapping such as "{preset: fast, substeps: 2}"; '
                         'overrides the scene\'s accuracy')
@@ -87,11 +95,12 @@ def particle_records(world: World) -> list[dict]:
 
 
 def run(world: World, steps: int, show_progress: bool = True,
-        stop: Optional[Callable[[], bool]] = None) -> float:
+        stop: Optional[Callable[[], bool]] = None,
+        after_step: Optional[Callable[[], None]] = None) -> float:
     """Step ``world`` ``steps`` times; return the wall-clock seconds it took.
 
     ``stop`` is asked before every step; when it answers true the run ends
-    there (a step is never cut in half).
+    there (a step is never cut in half). ``after_step`` is called after each.
     """
     start = time.perf_counter()
     # The bar is fed in small chunks so it shows up (after its delay) even
@@ -103,6 +112,8 @@ def run(world: World, steps: int, show_progress: bool = True,
             if stop is not None and stop():
                 break
             world.step()
+            if after_step is not None:
+                after_step()
             if (done + 1) % chunk == 0:
                 bar.update(chunk)
     return time.perf_counter() - start
@@ -133,6 +144,40 @@ def check_out(out: str) -> None:
             path.unlink()
     except OSError as error:
         raise UsageError(f'--out {out}: {error.strerror}') from None
+
+
+def check_record(args: argparse.Namespace) -> None:
+    """Refuse ``--record`` and ``--record-rate`` values that cannot work, before any step."""
+    if args.record_rate is not None:
+        if args.record is None:
+            raise UsageError('--record-rate needs --record PATH')
+        if not (math.isfinite(args.record_rate) and args.record_rate > 0.0):
+            raise UsageError(f'--record-rate must be a finite number > 0, got {args.record_rate}')
+    if args.record is not None:
+        try:
+            from .recording.bag import BagTargetError, check_target
+        except ImportError as error:
+            raise UsageError(f'--record needs {error.name} (pip install -r requirements.txt)'
+                             ) from None
+        try:
+            check_target(args.record)
+        except BagTargetError as error:
+            raise UsageError(f'--record {args.record}: {error}') from None
+
+
+def open_recording(args: argparse.Namespace, world: World) -> Any:
+    """Return the run's recording (:class:`~.recording.offline.RunRecording`), or None."""
+    if args.record is None:
+        return None
+    from .recording.bag import BagTargetError
+    from .recording.definitions import DefinitionError
+    from .recording.offline import DEFAULT_RATE, RunRecording
+    rate = DEFAULT_RATE if args.record_rate is None else args.record_rate
+    try:
+        return RunRecording(args.record, world, rate)
+    except (BagTargetError, DefinitionError, OSError) as error:
+        text = error.strerror if isinstance(error, OSError) and error.strerror else error
+        raise UsageError(f'--record {args.record}: {text}') from None
 
 
 def steps_to_run(args: argparse.Namespace, duration: float, dt: float) -> int:
@@ -194,6 +239,7 @@ def _main(argv: Optional[Sequence[str]]) -> int:
             raise UsageError(f'--duration must be a finite number >= 0, got {args.duration}')
         if args.out is not None:
             check_out(args.out)
+        check_record(args)
         scene = load_scene(args.scene)
         if args.accuracy is not None:
             scene = scene.with_accuracy(parse_accuracy_text(args.accuracy, scene.effects,
@@ -209,16 +255,26 @@ def _main(argv: Optional[Sequence[str]]) -> int:
     if args.explain:
         print(world.explain())
         return 0
+    try:
+        recording = open_recording(args, world)
+    except UsageError as error:
+        print(f'simulate: error: {error}', file=sys.stderr)
+        return EXIT_BAD_INPUT
     start = {'kinetic': world.kinetic_energy(), 'momentum': world.momentum(),
              'energy': world.energy()}
     # The handlers stay until the JSON is written: a second Ctrl-C must not
     # lose what the first one kept.
     with _StopRequest() as stop:
         try:
-            wall_seconds = run(world, steps, stop=stop)
+            wall_seconds = run(world, steps, stop=stop,
+                               after_step=None if recording is None else recording.after_step)
         except NonFiniteStateError as error:
             print(f'simulate: error: {scene.name}: {error}', file=sys.stderr)
+            if recording is not None:
+                recording.finish()
             return 1
+        # The bag is finished before the JSON is made: its last frame is the final state.
+        record_error = None if recording is None else recording.finish()
         result = build_result(world, start, wall_seconds)
         if stop.signal is not None:
             result['interrupted'] = True
@@ -237,6 +293,10 @@ def _main(argv: Optional[Sequence[str]]) -> int:
                 # Checked before the run; a full disk or /dev/full shows only now.
                 print(f'simulate: error: --out {args.out}: {error.strerror}', file=sys.stderr)
                 return EXIT_BAD_INPUT
+        if record_error is not None:
+            # A full disk mid-run: the run went on, the bag stops where the write failed.
+            print(f'simulate: error: --record {args.record}: {record_error}', file=sys.stderr)
+            return EXIT_BAD_INPUT
         return EXIT_INTERRUPTED if stop.signal is not None else 0
 
 
