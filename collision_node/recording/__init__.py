@@ -1,4 +1,4 @@
-"""Recordings of a run as rosbag2 bags (MCAP storage), readable by ``ros2 bag`` and the usual tools.
+"""Recordings of a run as rosbag2 bags (MCAP storage), for ``ros2 bag`` and the usual tools.
 
 ``bag`` writes the bag (the MCAP file and ``metadata.yaml``) from CDR
 bytes, ``definitions`` reads the message definitions it embeds from the

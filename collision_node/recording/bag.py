@@ -163,7 +163,7 @@ class BagWriter:
         self._end = max(self._end, log_time)
 
     def metadata(self) -> dict[str, Any]:
-        """Return the bag's rosbag2 metadata (the body of ``metadata.yaml``)."""
+        """Return the bag's rosbag2 metadata, the body of ``metadata.yaml``."""
         count = self.message_count
         duration = {'nanoseconds': self._end - self._start if count else 0}
         start = {'nanoseconds_since_epoch': self._start}
