@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import time
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import rclpy
 from geometry_msgs.msg import PoseArray, VelocityStamped
@@ -264,7 +264,7 @@ class CollisionNode(Node):
     # -- recording (the bag itself is collision_node.recording) -----------
 
     @staticmethod
-    def _record_target_check(path: str, action: Any) -> None:
+    def _record_target_check(path: str, action: Callable[[str], None]) -> None:
         """Run ``action(path)``; a path that cannot become a bag is a parameter error."""
         try:
             action(path)
