@@ -25,11 +25,11 @@ from typing import Any, Callable, Optional, Sequence
 import numpy as np
 from tqdm import tqdm
 
-from .physics.accuracy import parse_accuracy_text
-from .physics.kernels import prepare as prepare_kernels
-from .physics.scene import load_scene
-from .physics.validation import SceneError
-from .physics.world import NonFiniteStateError, World
+from .physics.model.accuracy import parse_accuracy_text
+from .physics.step.kernels import prepare as prepare_kernels
+from .physics.model.scene import load_scene
+from .physics.model.validation import SceneError
+from .physics.step.world import NonFiniteStateError, World
 
 # Runs shorter than this never show a progress bar.
 PROGRESS_DELAY_S = 2.0

@@ -1,7 +1,7 @@
 """The Python event loop the compiled one replaced, kept as the tests' reference.
 
-This is ``collision_node/physics/stages/event_driven.py`` as it was before
-its loop moved into ``collision_node/physics/event_kernels.py``: a
+This is ``collision_node/physics/stages/events/event_driven.py`` as it was before
+its loop moved into ``collision_node/physics/stages/events/event_kernels.py``: a
 ``heapq`` of (time, seq, kind, p, q, stamps) tuples, a dict of cell sets,
 vectorised predictions. ``test/test_event_kernels.py`` runs it and the
 compiled stage on the same worlds and asserts the same impacts at the same
@@ -18,17 +18,17 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from collision_node.physics.accuracy import (AccuracySettings, check_event_mode,
-                                             EVENT_FALLBACK, MIN_EVENT_BUDGET, PRESETS)
-from collision_node.physics.contact_law import (apply_pair_impulses, apply_wall_impulses,
-                                                pair_coefficient, record_pairs, record_walls,
-                                                thresholded, wall_coefficient)
-from collision_node.physics.effects import Effects
-from collision_node.physics.paths import entering_time
-from collision_node.physics.step import Pipeline, Stage, StepContext
-from collision_node.physics.state import ParticleState
-from collision_node.physics.stages.narrowphase import line_of_action
-from collision_node.physics.stages.swept_contacts import pair_impact_times
+from collision_node.physics.model.accuracy import (AccuracySettings, check_event_mode,
+                                                   EVENT_FALLBACK, MIN_EVENT_BUDGET, PRESETS)
+from collision_node.physics.law.contact_law import (apply_pair_impulses, apply_wall_impulses,
+                                                    pair_coefficient, record_pairs, record_walls,
+                                                    thresholded, wall_coefficient)
+from collision_node.physics.model.effects import Effects
+from collision_node.physics.law.paths import entering_time
+from collision_node.physics.step.pipeline import Pipeline, Stage, StepContext
+from collision_node.physics.model.state import ParticleState
+from collision_node.physics.stages.detection.narrowphase import line_of_action
+from collision_node.physics.stages.swept.swept_contacts import pair_impact_times
 
 PAIR, WALL, CELL = 0, 1, 2
 

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from collision_node import SceneError, World, load_scene, parse_scene
-from collision_node.physics.accuracy import (PRESETS, AccuracySettings, check_event_mode,
-                                             parse_accuracy)
-from collision_node.physics.reference import missed_collisions
-from collision_node.physics.effects import Effects
+from collision_node.physics.model.accuracy import (PRESETS, AccuracySettings, check_event_mode,
+                                                   parse_accuracy)
+from collision_node.physics.step.reference import missed_collisions
+from collision_node.physics.model.effects import Effects
 from collision_node.simulate import main as simulate_main
-from collision_node.physics.stages.broadphase import ALL_PAIRS_UP_TO
+from collision_node.physics.stages.detection.broadphase import ALL_PAIRS_UP_TO
 from lecture_reference import lecture_update
 
 

@@ -13,8 +13,8 @@ from std_msgs.msg import String
 from collision_node import bench
 from collision_node.bench import node_load
 from collision_node.physics import parse_scene_text
-from collision_node.physics.scene import parse_spawn
-from collision_node.physics.validation import SceneError
+from collision_node.physics.model.scene import parse_spawn
+from collision_node.physics.model.validation import SceneError
 
 
 def test_registered_as_a_subcommand():

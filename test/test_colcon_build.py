@@ -97,7 +97,7 @@ def test_colcon_build_then_ros2_run_resolution(tmp_path, monkeypatch):
     run_dir = tmp_path / 'elsewhere'
     run_dir.mkdir()
     probe = subprocess.run(
-        [sys.executable, '-c', 'import collision_node, collision_node.physics.scene as s; '
+        [sys.executable, '-c', 'import collision_node, collision_node.physics.model.scene as s; '
          'print(collision_node.__file__); print(s.resolve_scene_path("cradle"))'],
         cwd=run_dir, env=env, capture_output=True, text=True, timeout=60)
     module_file, scene_file = probe.stdout.split()

@@ -19,13 +19,14 @@ import numpy as np
 import pytest
 
 from collision_node import World
-from collision_node.physics import coloring, contact_kernels
-from collision_node.physics.accuracy import PRESETS
-from collision_node.physics.coloring import color_pairs
-from collision_node.physics.contact_law import apply_pair_friction, apply_pair_impulses
-from collision_node.physics.scene import load_scene
-from collision_node.physics.stages import sequential_impulses
-from collision_node.physics.stages.sequential_impulses import SequentialImpulseStage
+from collision_node.physics.law import coloring
+from collision_node.physics.law import primitives
+from collision_node.physics.model.accuracy import PRESETS
+from collision_node.physics.law.coloring import color_pairs
+from collision_node.physics.law.contact_law import apply_pair_friction, apply_pair_impulses
+from collision_node.physics.model.scene import load_scene
+from collision_node.physics.stages.solve import sequential_impulses
+from collision_node.physics.stages.solve.sequential_impulses import SequentialImpulseStage
 
 
 def disjoint_pairs(rng: np.random.Generator, count: int):
@@ -60,11 +61,11 @@ def test_kernel_law_equals_vectorised_law_on_one_colour(planar):
     magnitude, removed = np.zeros(i.size), np.zeros(i.size)
     k_tangential, k_lost = [], []
     for k in range(i.size):
-        magnitude[k], _, removed[k] = contact_kernels.pair_impulse(
+        magnitude[k], _, removed[k] = primitives.pair_impulse(
             v_k, inv_mass, i[k], j[k], *normal[k], e[k], tolerance)
     for k in np.flatnonzero(hit):
-        t, loss = contact_kernels._friction(v_k, w_k, inv_mass, radius, i[k], j[k],
-                                            *normal[k], magnitude[k], mu[k], planar)
+        t, loss = primitives.pair_friction(v_k, w_k, inv_mass, radius, i[k], j[k],
+                                           *normal[k], magnitude[k], mu[k], planar)
         k_tangential.append(t)
         k_lost.append(loss)
     np.testing.assert_array_equal(v_k, v_ref)
@@ -177,7 +178,7 @@ def test_stage_refuses_an_unknown_backend():
 
 
 def test_first_start_says_it_compiles_and_a_cached_start_says_nothing(tmp_path):
-    code = ('import sys\nfrom collision_node.physics import kernels as k\n'
+    code = ('import sys\nfrom collision_node.physics.step import kernels as k\n'
             'took = k.prepare(lambda text: print(text, file=sys.stderr))\n'
             'print(took)\n')
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / 'numba'))
@@ -196,14 +197,13 @@ def test_the_cache_folder_follows_every_physics_source(tmp_path):
     # numba checks a cached kernel against its own file only; a kernel calling
     # the law in another module must not load stale code when that module changes.
     import shutil
-    from collision_node.physics import numba_cache as k
+    from collision_node.physics.step import numba_cache as k
     copy = tmp_path / 'physics'
-    shutil.copytree(os.path.dirname(k.__file__), copy,
-                    ignore=shutil.ignore_patterns('__pycache__'))
+    shutil.copytree(k.PHYSICS_ROOT, copy, ignore=shutil.ignore_patterns('__pycache__'))
     before = k.sources_digest(str(copy))
-    assert before == k.sources_digest(os.path.dirname(k.__file__))
+    assert before == k.sources_digest(k.PHYSICS_ROOT)
     assert os.path.basename(k.CACHE_DIR) == f'numba-{before}'
-    law = copy / 'contact_law.py'
+    law = copy / 'law' / 'contact_law.py'
     law.write_text(law.read_text() + '\n# changed\n')
     assert k.sources_digest(str(copy)) != before
 
@@ -220,7 +220,7 @@ def test_every_kernel_module_is_prepared_up_front():
     import pkgutil
 
     from collision_node import physics
-    from collision_node.physics import kernels as k
+    from collision_node.physics.step import kernels as k
     from numba.core.registry import CPUDispatcher
     prepared = {kernel.py_func.__module__ for kernel in k.all_kernels()}
     compiled = set()
@@ -229,5 +229,5 @@ def test_every_kernel_module_is_prepared_up_front():
         if any(isinstance(value, CPUDispatcher) and value.py_func.__module__ == info.name
                for value in vars(module).values()):
             compiled.add(info.name)
-    assert 'collision_node.physics.resting_kernels' in compiled
+    assert 'collision_node.physics.stages.events.resting_kernels' in compiled
     assert compiled == prepared

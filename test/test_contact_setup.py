@@ -14,11 +14,11 @@ from types import SimpleNamespace
 import numpy as np
 
 from collision_node import World
-from collision_node.physics.accuracy import PRESETS
-from collision_node.physics.contact_kernels import find_wall_contacts
-from collision_node.physics.scene import load_scene
-from collision_node.physics.stages.sequential_impulses import (SequentialImpulseStage,
-                                                               WALL_SLOP)
+from collision_node.physics.model.accuracy import PRESETS
+from collision_node.physics.stages.solve.contact_kernels import find_wall_contacts
+from collision_node.physics.model.scene import load_scene
+from collision_node.physics.stages.solve.sequential_impulses import (SequentialImpulseStage,
+                                                                     WALL_SLOP)
 
 
 def solver_of(world: World) -> SequentialImpulseStage:

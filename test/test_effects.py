@@ -10,7 +10,7 @@ import pytest
 
 from collision_node import SceneError, World, parse_scene
 from collision_node.simulate import main as simulate_main
-from collision_node.physics.stages.spin import rotate
+from collision_node.physics.stages.motion.spin import rotate
 
 G = 9.81
 

@@ -1,4 +1,4 @@
-"""The compiled event loop of the exact preset (``physics/event_kernels.py``).
+"""The compiled event loop of the exact preset (``physics/stages/events/event_kernels.py``).
 
 Against closed-form impact times, and against the Python loop it replaced
 (``test/event_reference.py``) on random gases: the same impacts between the
@@ -21,9 +21,9 @@ import math
 import numpy as np
 import pytest
 
-from collision_node.physics import event_kernels as ek
-from collision_node.physics.scene import parse_scene
-from collision_node.physics.world import World
+from collision_node.physics.stages.events import event_kernels as ek
+from collision_node.physics.model.scene import parse_scene
+from collision_node.physics.step.world import World
 from event_reference import PythonEventStage
 
 
@@ -289,6 +289,6 @@ def test_a_crowded_particle_refreshes_and_misses_no_impact():
     (0.0, -1.0, 0.0), (0.0, 0.0, -1.0), (-1e-9, 1.0, 0.0), (math.inf, -1.0, -9.81),
     (1e-300, -1e-300, 0.0)])
 def test_entering_time_is_the_paths_module_s(gap, rate, curvature):
-    from collision_node.physics.paths import entering_time
+    from collision_node.physics.law.paths import entering_time
     expected = entering_time(np.array([gap]), np.array([rate]), np.array([curvature]))[0]
     assert ek.entering(gap, rate, curvature) == expected

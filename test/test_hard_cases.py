@@ -1,6 +1,6 @@
 """The hard cases that break collision code, one named test per case (issue 6).
 
-Every test runs once per accuracy preset in ``collision_node.physics.accuracy.PRESETS``
+Every test runs once per accuracy preset in ``collision_node.physics.model.accuracy.PRESETS``
 (new presets join automatically) and asserts analytic values or stated
 bounds; docs/stability.md lists each case with its outcome per preset.
 The long forms (the 1,000,000-step run, the dense cluster settled to the
@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from collision_node import World, parse_scene
-from collision_node.physics.accuracy import PRESETS
-from collision_node.physics.stages.broadphase import candidate_pairs
+from collision_node.physics.model.accuracy import PRESETS
+from collision_node.physics.stages.detection.broadphase import candidate_pairs
 
 
 @pytest.fixture(params=sorted(PRESETS))
@@ -357,7 +357,7 @@ def assert_no_fallback(world: World) -> None:
     """No step went to the step solver: the event-driven preset held its resting contact.
 
     Under gravity ``exact`` gives each resting particle the constant
-    acceleration its supports leave it (``stages/event_driven.py``,
+    acceleration its supports leave it (``stages/events/event_driven.py``,
     ``resting_kernels``), so a column or a pile at rest takes no step
     solver step; the step presets never fall back.
     """

@@ -23,9 +23,9 @@ from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 
-from collision_node.physics.impacts import IMPACT_DTYPE
-from collision_node.physics.scene import load_scene
-from collision_node.physics.world import World
+from collision_node.physics.model.impacts import IMPACT_DTYPE
+from collision_node.physics.model.scene import load_scene
+from collision_node.physics.step.world import World
 from collision_node.ros.qos import COLLISIONS_QOS
 from collision_node.ros.reports import Reports
 from msg_adapters import impacts_from_point_cloud, seconds_from_stamp

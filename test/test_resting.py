@@ -3,7 +3,7 @@
 Under gravity ``exact`` finds the resting contacts at each step's start,
 zeroes their normal speeds (booking the energy), solves their support
 forces and moves each supported particle with its own constant
-acceleration (``resting_kernels``, ``stages/event_driven.py``). A pair whose
+acceleration (``resting_kernels``, ``stages/events/event_driven.py``). A pair whose
 accelerations differ meets at the first root of a quartic
 (``event_kernels.curved_delay``), checked here against closed forms and
 a brute-force search.
@@ -16,9 +16,9 @@ import math
 import numpy as np
 import pytest
 
-from collision_node.physics import event_kernels as ek
-from collision_node.physics.scene import parse_scene
-from collision_node.physics.world import World
+from collision_node.physics.stages.events import event_kernels as ek
+from collision_node.physics.model.scene import parse_scene
+from collision_node.physics.step.world import World
 
 G = 9.81
 

@@ -240,7 +240,7 @@ def test_readme_scene_example_is_a_valid_scene():
 
 
 def test_oversized_generate_spawn_is_refused_before_generating(monkeypatch):
-    import collision_node.physics.scene as scene_module
+    import collision_node.physics.model.scene as scene_module
     world = World(parse_scene({'particles': [
         {'position': [0, 0, 0], 'radius': 0.1, 'mass': 1}]}, 'room'), max_particles=10)
 

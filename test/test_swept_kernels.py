@@ -112,8 +112,8 @@ def test_compiled_sweep_runs_the_balanced_preset():
 @pytest.mark.parametrize('dimensions', [2, 3])
 def test_in_contact_kernel_matches_numpy_formula(dimensions):
     """The compiled resting-contact marks equal the numpy expressions, entry by entry."""
-    from collision_node.physics.stages.swept_contacts import TOUCH_SLOP
-    from collision_node.physics.swept_kernels import in_contact
+    from collision_node.physics.stages.swept.swept_contacts import TOUCH_SLOP
+    from collision_node.physics.stages.swept.swept_kernels import in_contact
     rng = np.random.default_rng(3)
     n = 400
     radius = rng.uniform(0.05, 0.1, n)

@@ -18,13 +18,13 @@ import numpy as np
 import pytest
 
 from collision_node import World
-from collision_node.physics.accuracy import parse_accuracy
-from collision_node.physics.effects import Effects, Walls
-from collision_node.physics.impacts import ImpactLog
-from collision_node.physics.scene import load_scene
-from collision_node.physics.stages.walls import WallStage
-from collision_node.physics.state import ParticleState
-from collision_node.physics.step import StepContext, StepStats
+from collision_node.physics.model.accuracy import parse_accuracy
+from collision_node.physics.model.effects import Effects, Walls
+from collision_node.physics.model.impacts import ImpactLog
+from collision_node.physics.model.scene import load_scene
+from collision_node.physics.stages.solve.walls import WallStage
+from collision_node.physics.model.state import ParticleState
+from collision_node.physics.step.pipeline import StepContext, StepStats
 
 GRAVITY = np.array([0.0, -9.81, 0.0])
 

@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 
 from collision_node import World, parse_scene
-from collision_node.physics.accuracy import PRESETS
-from collision_node.physics.scene import load_scene
-from collision_node.physics.stages.sequential_impulses import (ContactCache,
-                                                               SequentialImpulseStage)
-from collision_node.physics.state import ParticleState
+from collision_node.physics.model.accuracy import PRESETS
+from collision_node.physics.model.scene import load_scene
+from collision_node.physics.stages.solve.sequential_impulses import (ContactCache,
+                                                                     SequentialImpulseStage)
+from collision_node.physics.model.state import ParticleState
 
 G = 9.81
 RADIUS = 0.05

@@ -37,11 +37,11 @@ from typing import Optional
 
 import numpy as np
 
-from ..physics.kernels import prepare as prepare_kernels
-from ..physics.reference import end_penetration
-from ..physics.scene import load_scene, parse_scene
-from ..physics.validation import SceneError
-from ..physics.world import World
+from ..physics.step.kernels import prepare as prepare_kernels
+from ..physics.step.reference import end_penetration
+from ..physics.model.scene import load_scene, parse_scene
+from ..physics.model.validation import SceneError
+from ..physics.step.world import World
 
 PRESETS = ('fast', 'balanced', 'accurate', 'exact')
 PYMUNK_MISSING = 'pymunk not installed (pip install pymunk==7.x): comparison row skipped'
@@ -63,7 +63,7 @@ def wall_penetration(position: np.ndarray, radius: np.ndarray, low: np.ndarray,
 def pile_quality(position: np.ndarray, velocity: np.ndarray, radius: np.ndarray,
                  low: np.ndarray, high: np.ndarray, dimensions: int) -> dict:
     """Return the deepest overlap over the radius and the fastest particle's speed."""
-    from ..physics.state import ParticleState
+    from ..physics.model.state import ParticleState
     n = position.shape[0]
     padded = np.zeros((n, 3))
     padded[:, :dimensions] = position[:, :dimensions]
@@ -98,7 +98,7 @@ def run_preset(scene, preset: str, steps: int, max_seconds: float) -> dict:
 
 def _settings(preset: str):
     """Return the accuracy settings of a preset by name."""
-    from ..physics.accuracy import parse_accuracy
+    from ..physics.model.accuracy import parse_accuracy
     return parse_accuracy(preset, 'bench pile: accuracy')
 
 

@@ -27,10 +27,10 @@ import time
 
 import numpy as np
 
-from ..physics import kernels
-from ..physics.scene import parse_scene
-from ..physics.stages.broadphase import candidate_pairs
-from ..physics.world import World
+from ..physics.step import kernels
+from ..physics.model.scene import parse_scene
+from ..physics.stages.detection.broadphase import candidate_pairs
+from ..physics.step.world import World
 
 RADIUS = 0.05
 G = 9.81

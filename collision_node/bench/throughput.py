@@ -21,8 +21,8 @@ import platform
 import time
 from typing import Optional
 
-from ..physics.scene import parse_scene
-from ..physics.world import World
+from ..physics.model.scene import parse_scene
+from ..physics.step.world import World
 
 DEFAULT_COUNTS = (1_000, 10_000, 100_000)
 # Density of scenes/gas_10k.yaml: 10,000 particles in a 5 m cube (4.2 % volume fraction).

@@ -6,10 +6,10 @@ and energy. Nothing in this package imports a module outside it (the
 layout test in ``test/test_core_imports.py`` checks both rules).
 """
 
-from .scene import Scene, load_scene, parse_scene, parse_scene_text, parse_spawn
-from .state import ParticleState
-from .validation import SceneError
-from .world import NonFiniteStateError, World
+from .model.scene import Scene, load_scene, parse_scene, parse_scene_text, parse_spawn
+from .model.state import ParticleState
+from .model.validation import SceneError
+from .step.world import NonFiniteStateError, World
 
 __all__ = ['NonFiniteStateError', 'ParticleState', 'Scene', 'SceneError', 'World',
            'load_scene', 'parse_scene', 'parse_scene_text', 'parse_spawn']

@@ -13,7 +13,7 @@ gets exactly one answer on ``events``::
 
 ``seq`` counts answers from 1; ``request_id`` echoes the request's own
 (null without one); ``ids`` are inclusive ``[first, last]`` ranges. The
-checks themselves live in :mod:`collision_node.physics.commands`; this
+checks themselves live in :mod:`collision_node.physics.model.world_commands`; this
 module only routes messages and formats answers.
 """
 
@@ -31,11 +31,12 @@ from std_srvs.srv import SetBool, Trigger
 
 from msg_adapters.strings import string_bytes, string_size, string_text, StringMessageError
 
-from ..physics.commands import (delete_request, id_ranges, impulse_request, parse_request,
-                                request_id_of, spawn_request, step_count, teleport_request)
-from ..physics.guard import MAX_TEXT_BYTES
-from ..physics.validation import SceneError
-from ..physics.world import NonFiniteStateError
+from ..physics.model.world_commands import (delete_request, id_ranges, impulse_request,
+                                            parse_request, request_id_of, spawn_request,
+                                            step_count, teleport_request)
+from ..physics.model.guard import MAX_TEXT_BYTES
+from ..physics.model.validation import SceneError
+from ..physics.step.world import NonFiniteStateError
 from .qos import COMMAND_QOS, EVENTS_QOS
 
 MAX_REASON = 400             # characters of a refusal reason in an answer

@@ -1,7 +1,7 @@
 """The collision_node ROS 2 node: a live particle world on topics.
 
 The node owns timing and ROS I/O only: the physics is a core
-:class:`~collision_node.physics.world.World`, and every numpy-to-message
+:class:`~collision_node.physics.step.world.World`, and every numpy-to-message
 conversion lives in :mod:`msg_adapters`. Topics, QoS and parameters are
 tabled in the README (section "The ROS 2 node").
 """
@@ -28,11 +28,11 @@ from visualization_msgs.msg import MarkerArray
 from msg_adapters import clock_bytes, velocities_bytes
 from msg_adapters.strings import string_bytes
 
-from ..physics.accuracy import parse_accuracy_text
-from ..physics.kernels import prepare as prepare_kernels
-from ..physics.scene import load_scene
-from ..physics.validation import SceneError
-from ..physics.world import NonFiniteStateError, World
+from ..physics.model.accuracy import parse_accuracy_text
+from ..physics.step.kernels import prepare as prepare_kernels
+from ..physics.model.scene import load_scene
+from ..physics.model.validation import SceneError
+from ..physics.step.world import NonFiniteStateError, World
 from ..recording.bag import BagTargetError, check_target
 from ..recording.definitions import DefinitionError
 from ..recording.recorder import FRAME_MESSAGES, Recorder

@@ -19,7 +19,7 @@ from sensor_msgs.msg import PointCloud2
 
 from msg_adapters import impact_cloud_bytes
 
-from ..physics.world import World
+from ..physics.step.world import World
 from ..recording.recorder import Recorder
 from .diagnostics import diagnostic_array
 from .qos import COLLISIONS_QOS, DIAGNOSTICS_QOS

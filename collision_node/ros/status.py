@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any, Optional
 
-from ..physics.world import World
+from ..physics.step.world import World
 
 
 def status_report(world: World, scene_name: str, rates: tuple[float, float], *,
