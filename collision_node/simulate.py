@@ -1,14 +1,19 @@
 """Offline runner: ``python -m collision_node.simulate SCENE [options]``.
 
 Runs a scene without ROS, prints a short summary, and writes the final
-state and statistics as JSON. A bad scene or argument exits with code 2
-and one line on stderr, before any step is taken (``--out`` included).
+state and statistics as JSON, and on request pictures of the final state
+and of the energy over time (drawn by ``collision_node.pictures``). A bad
+scene or argument exits with code 2 and one line on stderr, before any
+step is taken (every output path included).
 Ctrl-C (SIGINT) or SIGTERM stops the run at a step boundary: the summary
 and the JSON of the state reached (``"interrupted": true``) are still
-written, and the exit code is 130. ``--record PATH`` also writes the run
-as a rosbag2 bag (MCAP) of what the node would publish, stamped with
-simulated time (:mod:`collision_node.recording`; it needs the ROS 2
-message packages, imported only then).
+written, and the exit code is 130. A world too large for the machine's
+memory (``MemoryError`` while loading or stepping) is one line and exit 2.
+``--profile`` adds the wall time per stage (``World.profile``) to the
+output and the JSON. ``--record PATH`` also writes the run as a rosbag2 bag
+(MCAP) of what the node would publish, stamped with simulated time
+(:mod:`collision_node.recording`; it needs the ROS 2 message packages,
+imported only then).
 """
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ from tqdm import tqdm
 from .physics.model.accuracy import parse_accuracy_text
 from .physics.step.kernels import prepare as prepare_kernels
 from .physics.model.scene import load_scene
-from .physics.model.validation import SceneError
+from .physics.model.validation import SceneError, one_line
 from .physics.step.world import NonFiniteStateError, World
 
 # Runs shorter than this never show a progress bar.
@@ -36,12 +41,19 @@ PROGRESS_DELAY_S = 2.0
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
 # More steps than this is a typo or an overflow (1e9 steps of a single
-# particle already take hours), refused before the run.
+# particle already take hours), refused before the run: --steps, and the
+# steps --duration (or the scene's duration) makes at the scene's dt.
 MAX_STEPS = 10 ** 9
 
 
 class UsageError(Exception):
     """A command-line argument the runner cannot accept."""
+
+
+def out_of_memory(error: MemoryError, doing: str) -> str:
+    """Return the one-line report of a ``MemoryError`` met while ``doing``."""
+    detail = one_line(str(error), 80)
+    return f'out of memory {doing} (MemoryError{": " + detail if detail else ""})'
 
 
 class _Parser(argparse.ArgumentParser):
@@ -59,9 +71,18 @@ def build_parser() -> argparse.ArgumentParser:
     length.add_argument('--duration', type=float, help='simulated seconds (default: scene)')
     length.add_argument('--steps', type=int, help='number of steps')
     parser.add_argument('--out', help='write the final state and stats as JSON to this file')
+    parser.add_argument('--snapshot', metavar='FILE.png',
+                        help='draw the final state to scale (x-y plane, walls, static '
+                        'particles grey) into this picture')
+    parser.add_argument('--energy-plot', metavar='FILE.png',
+                        help='plot kinetic and potential energy over time above the losses '
+                        'per effect into this picture')
     parser.add_argument('--explain', action='store_true',
                         help='print the step pipeline and exit')
     parser.add_argument('--quiet', action='store_true', help='no summary on stdout')
+    parser.add_argument('--profile', action='store_true',
+                        help='print the wall time per stage (ms per step and share; the '
+                             'first step, which loads the compiled code, apart)')
     parser.add_argument('--record', metavar='PATH',
                         help='also write the run as a rosbag2 bag (MCAP) in the new folder PATH')
     parser.add_argument('--record-rate', type=float, metavar='HZ',
@@ -119,20 +140,32 @@ def run(world: World, steps: int, show_progress: bool = True,
     return time.perf_counter() - start
 
 
-def check_out(out: str) -> None:
-    """Refuse an ``--out`` target that cannot be written, before any step is run.
+def _calls(*hooks: Optional[Callable[[], None]]) -> Optional[Callable[[], None]]:
+    """Return one hook that calls every given one in order (None when none is given)."""
+    given = [hook for hook in hooks if hook is not None]
+    if len(given) <= 1:
+        return given[0] if given else None
+
+    def every() -> None:
+        for hook in given:
+            hook()
+    return every
+
+
+def check_out(out: str, flag: str = '--out') -> None:
+    """Refuse a ``flag`` target (``--out``) that cannot be written, before any step is run.
 
     A device that fails only when written to (``/dev/full``) can only be
     found at the end; :func:`main` reports that after the summary.
     """
     if out == '':
-        raise UsageError('--out: empty file name')
+        raise UsageError(f'{flag}: empty file name')
     path = Path(out)
     if path.is_dir():
-        raise UsageError(f'--out {out}: Is a directory')
+        raise UsageError(f'{flag} {out}: Is a directory')
     parent = path.parent
     if not parent.is_dir():
-        raise UsageError(f'--out {out}: No such file or directory ({parent} is not a '
+        raise UsageError(f'{flag} {out}: No such file or directory ({parent} is not a '
                          'directory)')
     # Try it rather than ask os.access (which says yes to root everywhere):
     # append to an existing file (no truncation), or create and remove.
@@ -143,7 +176,32 @@ def check_out(out: str) -> None:
         if not existed:
             path.unlink()
     except OSError as error:
-        raise UsageError(f'--out {out}: {error.strerror}') from None
+        raise UsageError(f'{flag} {out}: {error.strerror}') from None
+
+
+def check_pictures(args: argparse.Namespace) -> None:
+    """Refuse ``--snapshot``/``--energy-plot`` targets before the run, like ``--out``.
+
+    Also refused: a suffix matplotlib cannot write, and one file named by
+    two outputs (the second would overwrite the first).
+    """
+    asked = (('--snapshot', args.snapshot), ('--energy-plot', args.energy_plot))
+    pictures = [(flag, value) for flag, value in asked if value is not None]
+    if not pictures:
+        return
+    from .pictures import picture_format
+    for flag, value in pictures:
+        check_out(value, flag)
+        try:
+            picture_format(value)
+        except ValueError as error:
+            raise UsageError(f'{flag} {value}: {error}') from None
+    seen: dict[Path, str] = {}
+    for flag, value in ([('--out', args.out)] if args.out is not None else []) + pictures:
+        key = Path(value).resolve()
+        if key in seen:
+            raise UsageError(f'{flag} {value}: also the file of {seen[key]}')
+        seen[key] = flag
 
 
 def check_record(args: argparse.Namespace) -> None:
@@ -227,9 +285,16 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         # Ctrl-C while the scene loads: nothing has run, nothing to keep.
         print('simulate: interrupted before the run started', file=sys.stderr)
         return EXIT_INTERRUPTED
+    except MemoryError as error:
+        # Loading and stepping say where; this is the net for the rest (the
+        # summary or the JSON of a huge world).
+        print(f'simulate: error: {out_of_memory(error, "writing the results")}',
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
 
 
 def _main(argv: Optional[Sequence[str]]) -> int:
+    args = None
     try:
         args = build_parser().parse_args(argv)
         if args.steps is not None and args.steps < 0:
@@ -239,6 +304,7 @@ def _main(argv: Optional[Sequence[str]]) -> int:
             raise UsageError(f'--duration must be a finite number >= 0, got {args.duration}')
         if args.out is not None:
             check_out(args.out)
+        check_pictures(args)
         check_record(args)
         scene = load_scene(args.scene)
         if args.accuracy is not None:
@@ -252,6 +318,11 @@ def _main(argv: Optional[Sequence[str]]) -> int:
     except (UsageError, SceneError) as error:
         print(f'simulate: error: {error}', file=sys.stderr)
         return EXIT_BAD_INPUT
+    except MemoryError as error:
+        scene_name = getattr(args, 'scene', 'the scene')
+        print(f'simulate: error: {scene_name}: {out_of_memory(error, "loading the scene")}',
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
     if args.explain:
         print(world.explain())
         return 0
@@ -262,20 +333,34 @@ def _main(argv: Optional[Sequence[str]]) -> int:
         return EXIT_BAD_INPUT
     start = {'kinetic': world.kinetic_energy(), 'momentum': world.momentum(),
              'energy': world.energy()}
-    # The handlers stay until the JSON is written: a second Ctrl-C must not
+    recorder = None
+    if args.energy_plot is not None:
+        from .pictures import EnergyRecorder
+        recorder = EnergyRecorder(world, steps)
+    # The handlers stay until the outputs are written: a second Ctrl-C must not
     # lose what the first one kept.
     with _StopRequest() as stop:
         try:
             wall_seconds = run(world, steps, stop=stop,
-                               after_step=None if recording is None else recording.after_step)
+                               after_step=_calls(recorder, None if recording is None
+                                                 else recording.after_step))
         except NonFiniteStateError as error:
             print(f'simulate: error: {scene.name}: {error}', file=sys.stderr)
             if recording is not None:
                 recording.finish()
             return 1
+        except MemoryError as error:
+            doing = f'in step {world.steps + 1} of {steps} ({len(world.state)} particles)'
+            print(f'simulate: error: {scene.name}: {out_of_memory(error, doing)}',
+                  file=sys.stderr)
+            if recording is not None:
+                recording.finish()
+            return EXIT_BAD_INPUT
         # The bag is finished before the JSON is made: its last frame is the final state.
         record_error = None if recording is None else recording.finish()
         result = build_result(world, start, wall_seconds)
+        if args.profile:
+            result['profile'] = profile_record(world)
         if stop.signal is not None:
             result['interrupted'] = True
             result['steps_requested'] = steps
@@ -284,7 +369,9 @@ def _main(argv: Optional[Sequence[str]]) -> int:
                 print(f'interrupted by {signal.Signals(stop.signal).name} after {world.steps} '
                       f'of {steps} steps')
             print_summary(world, result)
-            sys.stdout.flush()
+        if args.profile:
+            print(world.profile().table())
+        sys.stdout.flush()
         if args.out is not None:
             try:
                 with open(args.out, 'w', encoding='utf-8') as handle:
@@ -293,11 +380,35 @@ def _main(argv: Optional[Sequence[str]]) -> int:
                 # Checked before the run; a full disk or /dev/full shows only now.
                 print(f'simulate: error: --out {args.out}: {error.strerror}', file=sys.stderr)
                 return EXIT_BAD_INPUT
+        pictures_written = write_pictures(args, world, recorder)
         if record_error is not None:
             # A full disk mid-run: the run went on, the bag stops where the write failed.
             print(f'simulate: error: --record {args.record}: {record_error}', file=sys.stderr)
+        if not pictures_written or record_error is not None:
             return EXIT_BAD_INPUT
         return EXIT_INTERRUPTED if stop.signal is not None else 0
+
+
+def write_pictures(args: argparse.Namespace, world: World, recorder: Any) -> bool:
+    """Draw and write the pictures asked for; say whether every one was written."""
+    if args.snapshot is None and recorder is None:
+        return True
+    from .pictures import energy_figure, save_figure, snapshot_figure
+    figures = []
+    if args.snapshot is not None:
+        figures.append(('--snapshot', args.snapshot, lambda: snapshot_figure(world)))
+    if recorder is not None:
+        recorder.finish()
+        figures.append(('--energy-plot', args.energy_plot,
+                        lambda: energy_figure(recorder.series(), world.scene.name)))
+    written = True
+    for flag, path, draw in figures:
+        try:
+            save_figure(draw(), path)
+        except OSError as error:
+            print(f'simulate: error: {flag} {path}: {error.strerror}', file=sys.stderr)
+            written = False
+    return written
 
 
 def build_result(world: World, start: dict, wall_seconds: float) -> dict:
@@ -321,6 +432,14 @@ def build_result(world: World, start: dict, wall_seconds: float) -> dict:
             'wall_seconds': wall_seconds,
         },
     }
+
+
+def profile_record(world: World) -> dict:
+    """Return the world's step profile as a JSON-ready mapping (times in ms)."""
+    profile = world.profile()
+    return {'steps': profile.steps, 'first_step_ms': profile.first_step_ms,
+            'ms_per_step': profile.ms_per_step,
+            'stages': [stage._asdict() for stage in profile.stages]}
 
 
 def print_summary(world: World, result: dict) -> None:

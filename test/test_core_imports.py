@@ -184,3 +184,25 @@ def test_no_folder_holds_more_than_fifteen_modules():
                                  if p.name != '__init__.py'])) > 15}
     assert crowded == {}
     assert len(folders) > 10
+
+
+def module_constants(path: Path) -> set[str]:
+    """Return the public UPPER_CASE names a module assigns at its top level."""
+    names = set()
+    for node in ast.parse(path.read_text()).body:
+        targets = node.targets if isinstance(node, ast.Assign) else (
+            [node.target] if isinstance(node, ast.AnnAssign) else [])
+        for target in targets:
+            for leaf in ast.walk(target):
+                if isinstance(leaf, ast.Name) and leaf.id.isupper() and leaf.id[0] != '_':
+                    names.add(leaf.id)
+    return names
+
+
+def test_no_physics_constant_is_defined_in_two_modules():
+    owners: dict[str, list[str]] = {}
+    for path in (PACKAGE / 'physics').rglob('*.py'):
+        for name in module_constants(path):
+            owners.setdefault(name, []).append(str(path.relative_to(ROOT)))
+    assert 'STRIKE_FACTOR' in owners and 'SPIN_FACTOR' in owners
+    assert {name: paths for name, paths in owners.items() if len(paths) > 1} == {}

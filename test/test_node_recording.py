@@ -24,6 +24,8 @@ from collision_node.simulate import main
 from msg_adapters import impacts_from_point_cloud, state_from_point_cloud
 from node_harness import NodeUnderTest, output, start, stop, unique_domain_id
 
+# The recordings are ROS 2 messages; the node tests start the node.
+pytestmark = pytest.mark.ros
 ROOT = Path(__file__).resolve().parent.parent
 PARAMETERS_FILE = ROOT / 'config' / 'collision_node.yaml'
 STEPS = 600                  # oblique_pair (dt = 1 ms): the pair meets at 0.5 s

@@ -33,6 +33,8 @@ from collision_node.simulate import main
 from msg_adapters import impacts_from_point_cloud, state_from_point_cloud
 from test_runner import wait_for_output
 
+# The recordings are ROS 2 messages; the node tests start the node.
+pytestmark = pytest.mark.ros
 ROOT = Path(__file__).resolve().parent.parent
 NODE_QOS = {'clock': STATE_QOS, 'poses': STATE_QOS, 'state': STATE_QOS, 'markers': STATE_QOS,
             'collisions': COLLISIONS_QOS, 'status': STATUS_QOS}

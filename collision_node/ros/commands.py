@@ -52,6 +52,12 @@ _MALLOC_TRIM = getattr(ctypes.CDLL(None), 'malloc_trim', None)     # glibc only
 LOGGED_PER_SECOND = 20
 
 
+def out_of_memory(error: MemoryError, doing: str) -> str:
+    """Return one line saying a ``MemoryError`` stopped ``doing`` (it has few words of its own)."""
+    detail = ' '.join(str(error).split())[:80]
+    return f'out of memory {doing} (MemoryError{": " + detail if detail else ""})'
+
+
 class LogBudget:
     """At most ``LOGGED_PER_SECOND`` refusals logged a second; the rest counted, then said."""
 
@@ -178,6 +184,8 @@ class CommandInterface:
             fields = handler(data)
         except SceneError as error:
             reason = str(error)
+        except MemoryError as error:
+            reason = f'{request}: {out_of_memory(error, "handling the request")}'
         except Exception as error:  # noqa: B902 - a bad request must never stop the node
             reason = f'{request}: {type(error).__name__}: {error}'
         else:
@@ -262,6 +270,11 @@ class CommandInterface:
                 node.get_logger().error(f'stopped stepping: {error}; reset to go on')
                 raise SceneError(f'step: stopped after {done + 1} of {count} steps: '
                                  f'{error}') from None
+            except MemoryError as error:
+                # The step may be half done: stop stepping, as on a non-finite state.
+                node.failed = out_of_memory(error, f'in step {done + 1} of {count}')
+                node.get_logger().error(f'stopped stepping: {node.failed}; reset to go on')
+                raise SceneError(f'step: {node.failed}; reset to go on') from None
         return {'steps': count, 'time': node.world.time}
 
     # -- reset and pause --------------------------------------------------------

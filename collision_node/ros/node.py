@@ -3,12 +3,13 @@
 The node owns timing and ROS I/O only: the physics is a core
 :class:`~collision_node.physics.step.world.World`, and every numpy-to-message
 conversion lives in :mod:`msg_adapters`. Topics, QoS and parameters are
-tabled in the README (section "The ROS 2 node").
+tabled in docs/node.md.
 """
 
 from __future__ import annotations
 
 import json
+import sys
 import time
 from typing import Any, Callable, Optional
 
@@ -16,8 +17,9 @@ import rclpy
 from geometry_msgs.msg import PoseArray, VelocityStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
-from rclpy.exceptions import ParameterException
+from rclpy.exceptions import NameValidationException, ParameterException
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock as ClockMsg
@@ -37,7 +39,7 @@ from ..recording.bag import BagTargetError, check_target
 from ..recording.definitions import DefinitionError
 from ..recording.recorder import FRAME_MESSAGES, Recorder
 from .cli import check_command_line
-from .commands import CommandInterface
+from .commands import CommandInterface, out_of_memory
 from .pacing import Lag, Pacer, RateMeter, STEP_BUDGET
 from .parameters import (as_double, DEFAULT_SCENE, integers_as_doubles, invalid_parameter,
                          PARAMETERS)
@@ -46,6 +48,7 @@ from .reports import Reports
 from .status import status_report
 
 NODE_NAME = 'collision_node'
+RCLError = _rclpy.RCLError
 STATUS_PERIOD = 0.5          # s of wall time between status messages
 
 
@@ -189,6 +192,12 @@ class CollisionNode(Node):
         except NonFiniteStateError as error:
             self.failed = str(error)
             self.get_logger().error(f'stopped stepping: {error}; reset to go on')
+            return
+        except MemoryError as error:
+            # The step may be half done: stop stepping (status error, an ERROR
+            # diagnostic) until a reset, as on a non-finite state.
+            self.failed = out_of_memory(error, f'in step {self.world.steps + 1}')
+            self.get_logger().error(f'stopped stepping: {self.failed}; reset to go on')
             return
         # Behind: the physics could not do what was due, or a late tick cost more
         # than a step (less is scheduler jitter: dropped and counted, not a lag).
@@ -334,7 +343,13 @@ def main(args: Optional[list[str]] = None) -> int:
     code = check_command_line(args)
     if code is not None:
         return code
-    rclpy.init(args=args)
+    try:
+        rclpy.init(args=args)
+    except RCLError as error:
+        # What check_command_line could not see (an environment rcl refuses).
+        print(f'collision_node: error: cannot start ROS: {" ".join(str(error).split())[:300]}',
+              file=sys.stderr)
+        return 2
     node = None
     try:
         # Readers that free each request once taken (qos.py says why).
@@ -343,8 +358,14 @@ def main(args: Optional[list[str]] = None) -> int:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (SceneError, ParameterException, DefinitionError, BagTargetError) as error:
+    except (SceneError, ParameterException, NameValidationException, DefinitionError,
+            BagTargetError) as error:
+        # NameValidationException: a name rclpy refuses that rcl's parser let through.
         rclpy.logging.get_logger(NODE_NAME).error(' '.join(str(error).split()))
+        return 2
+    except MemoryError as error:
+        doing = 'while starting' if node is None else 'in a callback'
+        rclpy.logging.get_logger(NODE_NAME).error(out_of_memory(error, doing))
         return 2
     except Exception:
         # A signal during start-up shuts the context down under the

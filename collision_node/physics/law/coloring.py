@@ -21,9 +21,7 @@ import numpy as np
 
 from ..step import numba_cache  # noqa: F401,I100 (chooses numba's cache directory first)
 from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
-
-# Box2D v3 uses 24 colours; a bitmask per particle holds up to 64.
-MAX_COLORS = 32
+from ..model.tunables import MAX_COLORS
 
 
 @njit(cache=True)

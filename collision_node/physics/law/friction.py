@@ -18,12 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..model.energy import SPHERE_INERTIA
-
-# r^2 m / I of a solid sphere (2.5), so dw = -(2.5 / (m r)) N x J, and the
-# slip a unit tangential impulse stops per 1/m: 1 + r^2 m / I (3.5).
-SPIN_FACTOR = 1.0 / SPHERE_INERTIA
-STICK_FACTOR = 1.0 + SPIN_FACTOR
+from ..model.energy import SPHERE_INERTIA, SPIN_FACTOR, STICK_FACTOR  # noqa: F401
 
 
 def contact_slip(v_i: np.ndarray, v_j: np.ndarray, spin_i: np.ndarray, spin_j: np.ndarray,

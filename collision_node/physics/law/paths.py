@@ -19,7 +19,7 @@ import numpy as np
 
 # Bisection steps that finish a quartic root the eigenvalues did not give
 # (2^-60 of the step: below rounding).
-BISECTIONS = 60
+from ..model.tunables import BISECTIONS  # noqa: E402
 
 
 def entering_time(gap: np.ndarray, rate: np.ndarray, curvature: np.ndarray) -> np.ndarray:

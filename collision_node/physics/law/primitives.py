@@ -14,11 +14,8 @@ import numpy as np
 from ..step import numba_cache  # noqa: F401,I100 (chooses numba's cache directory first)
 from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
 
-from ..model.energy import SPHERE_INERTIA  # noqa: E402
+from ..model.energy import SPIN_FACTOR, STICK_FACTOR  # noqa: E402
 
-# r^2 m / I of a solid sphere and 1 + that.
-SPIN_FACTOR = 1.0 / SPHERE_INERTIA
-STICK_FACTOR = 1.0 + SPIN_FACTOR
 # Rows of the per-particle loss array the solve returns.
 RESTITUTION, WALLS, FRICTION = 0, 1, 2
 EFFECTS = ('restitution', 'walls', 'friction')
@@ -275,6 +272,43 @@ def line_of_action(ox, oy, oz, rx, ry, rz):
         norm = math.sqrt(dot3(ux, uy, uz, ux, uy, uz))
         return -(ux / norm), -(uy / norm), -(uz / norm), 0.0
     return 1.0, 0.0, 0.0, 0.0
+
+
+@njit(cache=True, error_model='numpy', inline='always')
+def combined_coefficient(own, has_own, p, q, default):
+    """Return the coefficient of p and q (q < 0: a wall) by the geometric-mean combine rule.
+
+    ``own`` holds each particle's own value (NaN where it has none); a side
+    without one takes ``default``; neither side with one gives ``default``
+    itself (the vectorised rule is ``contact_law.combine``).
+    """
+    if not has_own:
+        return default
+    own_p = own[p]
+    missing_p = math.isnan(own_p)
+    missing_q = True
+    own_q = default
+    if q >= 0:
+        own_q = own[q]
+        missing_q = math.isnan(own_q)
+    if missing_p and missing_q:
+        return default
+    first = default if missing_p else own_p
+    second = default if missing_q else own_q
+    return math.sqrt(first * second)
+
+
+@njit(cache=True, inline='always')
+def apply_wall_normal(v, inv_mass, p, axis, inward, e, approach):
+    """Apply the law's wall impulse to ``p`` closing at ``approach`` on an axis-aligned wall.
+
+    The wall has infinite mass: the normal speed changes by (1 + e) approach
+    along ``inward`` (+1 or -1 on ``axis``). Returns (N s, J removed).
+    """
+    change = (1.0 + e) * approach
+    v[p, axis] += inward * change
+    magnitude = change / inv_mass[p]
+    return magnitude, 0.5 * magnitude * approach * (1.0 - e)
 
 
 def warm_up() -> None:

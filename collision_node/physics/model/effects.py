@@ -25,8 +25,8 @@ brings the contact's default: the scene's value for particle-particle
 contacts, the walls' ``restitution`` (or the scene's ``friction``) at a
 wall. So two particles of one material keep its value, a particle with
 0 makes every contact of its own 0, and nothing changes for particles
-that carry no value of their own. The rule itself lives in
-``contact_law.combine``, with the rest of the one contact law.
+that carry no value of their own. The rule itself is
+``law/primitives.combined_coefficient``, with the rest of the contact law.
 """
 
 from __future__ import annotations
@@ -37,19 +37,14 @@ from typing import Any, Optional
 
 import numpy as np
 
-from .particles import MAX_COORDINATE
+from .particles import MAX_COORDINATE, MAX_FRICTION
 from .validation import fail, number, quote, reject_unknown_keys, require_mapping, vector
+from ..model.tunables import GRAVITY_THRESHOLD_STEPS
 
 EFFECT_KEYS = ('gravity', 'walls', 'restitution', 'restitution_threshold', 'friction', 'drag')
 MAX_THRESHOLD = 1.0e6      # m/s
-MAX_FRICTION = 1.0e3       # a coefficient past this is almost surely a typing error
 MAX_DRAG = 1.0e30          # kg/s (linear) or kg/m (quadratic)
-
-# Default restitution threshold under gravity, in multiples of |g| dt: the
-# closing speed gravity builds in one or two steps of resting contact is
-# treated as resting (perfectly inelastic), so a resting pile does not
-# micro-bounce.
-GRAVITY_THRESHOLD_STEPS = 2.0
+MAX_GRAVITY = 1.0e6        # m/s^2 per component, 10^5 g: more is a unit error
 
 
 @dataclass(frozen=True)
@@ -176,7 +171,7 @@ def parse_effects(value: Any, where: str, dimensions: int) -> Effects:
         walls = parse_walls(value['walls'], f'{where}.walls', dimensions)
     gravity = None
     if 'gravity' in value:
-        gravity = vector(value['gravity'], f'{where}.gravity', dimensions, max_abs=1e6)
+        gravity = vector(value['gravity'], f'{where}.gravity', dimensions, max_abs=MAX_GRAVITY)
     restitution = None
     if 'restitution' in value:
         restitution = number(value['restitution'], f'{where}.restitution', minimum=0.0,

@@ -26,6 +26,10 @@ from .state import ParticleState
 from ..step.step_kernels import finish_lift
 
 SPHERE_INERTIA = 0.4       # I = 0.4 m r^2 (solid sphere)
+# r^2 m / I of a solid sphere (2.5), so dw = -(2.5 / (m r)) N x J, and the
+# slip a unit tangential impulse stops per 1/m: 1 + r^2 m / I (3.5).
+SPIN_FACTOR = 1.0 / SPHERE_INERTIA
+STICK_FACTOR = 1.0 + SPIN_FACTOR
 # Spacing of the points potential energy may be measured from, m: a power of
 # two, so every point is exact and x - point is exact near it.
 REFERENCE_GRID = 1024.0

@@ -12,7 +12,9 @@ can cause before any parser sees it:
   gigabytes (the "billion laughs");
 * numerals: a float that overflows becomes an :class:`OverflowedNumber`
   the validator rejects, and a numeral longer than 1000 characters is never
-  converted (``int()`` of a long numeral is quadratic).
+  converted (``int()`` of a long numeral is quadratic);
+* duplicate keys in a mapping are refused (both parsers would keep the last
+  one silently), naming the key, the mapping's path and the line.
 
 JSON goes through the C parser (``json.loads``) after a depth scan of its
 brackets outside strings, which is exact for JSON. Anything else goes
@@ -40,7 +42,7 @@ from typing import Any, Union
 import yaml
 from yaml.nodes import MappingNode, ScalarNode, SequenceNode
 
-from .validation import MAX_INTEGER_DIGITS, OverflowedNumber, SceneError, one_line
+from .validation import MAX_INTEGER_DIGITS, OverflowedNumber, SceneError, one_line, quote
 
 MAX_TEXT_BYTES = 1 << 20
 MAX_DEPTH = 32
@@ -48,6 +50,9 @@ MAX_DEPTH = 32
 _JSON_STRING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"', re.DOTALL)
 _BRACKET = re.compile(r'[\[\]{}]')
 _SCI_FLOAT = re.compile(r'^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$')
+# A key is quoted in a refusal only when it looks like a field name: any
+# other text (a line of some other file) may be anything.
+_KEY_NAME = re.compile(r'[A-Za-z_][A-Za-z0-9_]{0,39}')
 
 
 class _Refused(yaml.YAMLError):
@@ -56,6 +61,37 @@ class _Refused(yaml.YAMLError):
     def __init__(self, reason: str, mark: Any) -> None:
         super().__init__(reason)
         self.reason, self.mark = reason, mark
+
+
+class _DuplicateKey(ValueError):
+    """A JSON object with a key twice; :func:`parse_text` reads the text again as YAML."""
+
+    def __init__(self, key: Any) -> None:
+        super().__init__('duplicate key')
+        self.key = key
+
+
+def _key_text(key: Any) -> str:
+    """Name a key for a refusal: quoted if it is a field name, described otherwise."""
+    if isinstance(key, str) and _KEY_NAME.fullmatch(key):
+        return quote(key)
+    return '(a key that is not a field name)'
+
+
+def _path(stack: list[list[Any]]) -> str:
+    """Return where the innermost open collection sits: ``particles[2].velocity``."""
+    path = ''
+    for parent, child in zip(stack, stack[1:] + [None]):
+        if child is None:
+            break
+        node, pending = parent[0], parent[1]
+        if isinstance(node, SequenceNode):
+            path += f'[{len(node.value)}]'
+        else:
+            name = pending.value if isinstance(pending, ScalarNode) else None
+            name = name if isinstance(name, str) and _KEY_NAME.fullmatch(name) else '?'
+            path += f'.{name}' if path else name
+    return path
 
 
 class GuardedLoader(yaml.CSafeLoader):
@@ -70,14 +106,15 @@ class GuardedLoader(yaml.CSafeLoader):
         """Build the document's node tree from libyaml's events, iteratively.
 
         Replaces the recursive composer: refuses aliases and nesting deeper
-        than ``MAX_DEPTH`` at the event that would pass the limit.
+        than ``MAX_DEPTH`` at the event that would pass the limit, and a
+        scalar key a mapping already holds at that key.
         """
         self.get_event()                                  # StreamStart
         if self.check_event(yaml.StreamEndEvent):
             self.get_event()
             return None
         self.get_event()                                  # DocumentStart
-        stack: list[list[Any]] = []                       # [node, pending key]
+        stack: list[list[Any]] = []                       # [node, pending key, keys seen]
         root = None
         while root is None:
             event = self.get_event()
@@ -101,13 +138,21 @@ class GuardedLoader(yaml.CSafeLoader):
                 if tag is None or tag == '!':
                     tag = self.resolve(kind, None, event.implicit)
                 stack.append([kind(tag, [], event.start_mark, None,
-                                   flow_style=event.flow_style), None])
+                                   flow_style=event.flow_style), None,
+                              set() if kind is MappingNode else None])
                 continue
             if not stack:
                 root = node
             elif isinstance(stack[-1][0], SequenceNode):
                 stack[-1][0].value.append(node)
             elif stack[-1][1] is None:
+                if isinstance(node, ScalarNode):
+                    key = (node.tag, node.value)
+                    if key in stack[-1][2]:
+                        where = _path(stack)
+                        raise _Refused(f'{where + ": " if where else ""}duplicate key '
+                                       f'{_key_text(node.value)}', node.start_mark)
+                    stack[-1][2].add(key)
                 stack[-1][1] = node
             else:
                 stack[-1][0].value.append((stack[-1][1], node))
@@ -156,6 +201,18 @@ def _json_float(text: str) -> float:
 
 def _json_int(text: str) -> Union[int, float]:
     return OverflowedNumber(text) if len(text) > MAX_INTEGER_DIGITS else int(text)
+
+
+def _json_object(pairs: list[tuple[str, Any]]) -> dict:
+    """Build a JSON object; a key given twice raises :class:`_DuplicateKey`."""
+    out = dict(pairs)
+    if len(out) != len(pairs):
+        seen: set[str] = set()
+        for key, _ in pairs:
+            if key in seen:
+                raise _DuplicateKey(key)
+            seen.add(key)
+    return out
 
 
 def _json_depth(text: str) -> int:
@@ -221,9 +278,19 @@ def parse_text(text: str, source: str, kind: str = 'YAML or JSON') -> Any:
             start.isdigit():
         try:
             return json.loads(text, parse_float=_json_float, parse_int=_json_int,
-                              parse_constant=str)
+                              parse_constant=str, object_pairs_hook=_json_object)
+        except _DuplicateKey as duplicate:
+            # The YAML reading finds the same key with its path and line;
+            # should it not (JSON that libyaml reads otherwise), say what is known.
+            _parse_yaml(text, source, kind)
+            raise SceneError(f'{source}: duplicate key {_key_text(duplicate.key)}') from None
         except ValueError:
             pass                   # not JSON (JSONDecodeError is a ValueError): try YAML
+    return _parse_yaml(text, source, kind)
+
+
+def _parse_yaml(text: str, source: str, kind: str) -> Any:
+    """Parse ``text`` with the guarded libyaml loader (see :func:`parse_text`)."""
     # The tree only grows while it is built, so the cyclic collector would
     # walk it again and again for nothing (2.5x the build time of a 1 MiB
     # scene); pause it for the build.

@@ -22,6 +22,7 @@ MAX_COORDINATE = 1.0e12    # m
 MAX_RADIUS = 1.0e9         # m
 MAX_MASS = 1.0e30          # kg (inf is allowed and means static)
 MIN_VALUE = 1.0e-30        # smallest radius or mass, keeps 1/m finite
+MAX_FRICTION = 1.0e3       # a coefficient past this is almost surely a typing error
 
 PARTICLE_KEYS = ('position', 'velocity', 'radius', 'mass', 'restitution', 'friction',
                  'angular_velocity')
@@ -54,7 +55,7 @@ def parse_particle(spec: Any, where: str, dimensions: int,
     for key in ('restitution', 'friction'):
         if key in spec:
             out[key] = number(spec[key], f'{where}.{key}', minimum=0.0,
-                              maximum=1.0 if key == 'restitution' else None)
+                              maximum=1.0 if key == 'restitution' else MAX_FRICTION)
     if 'angular_velocity' in spec:
         out['angular_velocity'] = vector(spec['angular_velocity'],
                                          f'{where}.angular_velocity', 3, max_abs=MAX_SPEED)

@@ -8,6 +8,8 @@ source, the particle index and the field.
 
 from __future__ import annotations
 
+import os
+import stat
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,24 +20,26 @@ from .effects import Effects, check_particles_for_effects, parse_effects
 from .generate import generate_state, parse_generate
 from .particles import PARTICLE_KEYS, build_state, parse_particle
 from .state import ParticleState
-from .guard import GuardedLoader, parse_text, read_text_file
+from .guard import parse_text, read_text_file
 from .validation import SceneError, fail, number, quote, reject_unknown_keys, require_mapping
 
 SCENE_KEYS = ('name', 'dimensions', 'dt', 'duration', 'accuracy', 'effects', 'particles',
               'generate')
 DEFAULT_DT = 1.0 / 240.0
 DEFAULT_DURATION = 1.0
+# Longest step, s: a coarser step tunnels through anything (ccd aside) and is
+# almost surely a unit error.
 MAX_DT = 1.0
+# Shortest step, s (1 ns): a micrometre pile steps at 4 us, so less is a unit
+# error, and as dt goes to 0 the node's steps per tick (wall x factor / dt)
+# and the runner's duration / dt overflow.
+MIN_DT = 1e-9
 MAX_NAME = 100
-
-
-# The loader moved to the guard (libyaml, bounded); the old names still work.
-SceneLoader = GuardedLoader
-
-
-def load_yaml(text: str, source: str = 'text') -> Any:
-    """Parse YAML (or JSON) text through the guard (size, depth, aliases)."""
-    return parse_text(text, source)
+# Most particles one scene, or one spawn request, may hold (its particles and
+# generate entries together; the node's max_particles bounds the world too):
+# at about 200 bytes of state and step buffers each, 10^7 is 2 GB, and a
+# 1 MiB scene of generate entries could otherwise ask for 10^11.
+MAX_SCENE_PARTICLES = 10_000_000
 
 
 @dataclass(frozen=True)
@@ -82,15 +86,39 @@ def shipped_scene_names() -> list[str]:
     return sorted(names)
 
 
+# What a path is when it is not a regular file, by its stat mode.
+_FILE_KINDS = ((stat.S_ISDIR, 'a directory'), (stat.S_ISCHR, 'a character device'),
+               (stat.S_ISBLK, 'a block device'), (stat.S_ISFIFO, 'a named pipe (FIFO)'),
+               (stat.S_ISSOCK, 'a socket'))
+
+
 def resolve_scene_path(path_or_name: Union[str, Path]) -> Path:
-    """Find a scene by file path, or by the name of a shipped scene."""
+    """Find a scene by file path, or by the name of a shipped scene.
+
+    A path that exists but is not a regular file (a directory, a device, a
+    pipe) is refused saying what it is, before it is opened: reading a FIFO
+    would block and a device may never end.
+    """
     path = Path(path_or_name)
-    if path.is_file():
+    mode: Optional[int] = None
+    missing, reason = True, ''
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError) as error:        # ValueError: a NUL in the path
+        mode, reason = None, getattr(error, 'strerror', None) or 'not a valid path'
+        missing = isinstance(error, FileNotFoundError)
+    if mode is not None and stat.S_ISREG(mode):
         return path
     for directory in shipped_scene_dirs():
         candidate = directory / f'{path_or_name}.yaml'
         if candidate.is_file():
             return candidate
+    if mode is not None:
+        kind = next((name for test, name in _FILE_KINDS if test(mode)), 'not a regular file')
+        raise SceneError(f'{path_or_name}: is {kind}, not a scene file (a scene is a regular '
+                         'YAML file)')
+    if not missing:
+        raise SceneError(f'{path_or_name}: cannot read: {reason}')
     raise SceneError(f'{path_or_name}: no such scene file or shipped scene '
                      f'(shipped: {", ".join(shipped_scene_names()) or "none found"})')
 
@@ -123,6 +151,8 @@ def parse_scene(data: Any, source: str, default_name: str = 'scene') -> Scene:
         fail(f'{source}: dimensions', f'must be 2 or 3, got {quote(dimensions)}')
     dt = number(data.get('dt', DEFAULT_DT), f'{source}: dt', minimum=0.0,
                 exclusive_minimum=True, maximum=MAX_DT)
+    if dt < MIN_DT:
+        fail(f'{source}: dt', f'must be >= {MIN_DT:g} s, got {dt:g}')
     duration = number(data.get('duration', DEFAULT_DURATION), f'{source}: duration',
                       minimum=0.0)
     accuracy = parse_accuracy(data.get('accuracy'), f'{source}: accuracy')
@@ -140,9 +170,9 @@ def parse_particle_section(particles: Any, generate: Any, source: str, dimension
                            ) -> ParticleState:
     """Validate ``particles`` and ``generate`` lists and build their state.
 
-    With ``max_particles``, a request that would pass it is refused after
-    validation but before any particle is generated, so a huge ``generate``
-    count costs no memory.
+    A section of more than ``MAX_SCENE_PARTICLES``, or one that would take
+    the world past ``max_particles``, is refused after validation but before
+    any particle is generated, so a huge ``generate`` count costs no memory.
     """
     if particles is None:
         particles = []
@@ -158,6 +188,9 @@ def parse_particle_section(particles: Any, generate: Any, source: str, dimension
     specs = [parse_generate(spec, f'{source}: generate[{index}]', dimensions)
              for index, spec in enumerate(generate)]
     requested = len(records) + sum(spec['count'] for spec in specs)
+    if requested > MAX_SCENE_PARTICLES:
+        fail(source, f'{requested} particles are over the limit of {MAX_SCENE_PARTICLES} '
+                     'one scene or request may hold')
     if max_particles is not None and first_id + requested > max_particles:
         fail(source, f'{requested} particles would make {first_id + requested}, '
                      f'over max_particles = {max_particles}')

@@ -154,20 +154,25 @@ def _digits(value: int) -> str:
     return f'an integer of {len(str(abs(value)))} digits'
 
 
-def integer(value: Any, where: str, *, minimum: int = 0) -> int:
-    """Return ``value`` as an int after checking type and lower bound.
+def integer(value: Any, where: str, *, minimum: int = 0,
+            maximum: Optional[int] = None) -> int:
+    """Return ``value`` as an int after checking type and bounds.
 
     A float with an integral value (``1e3``, the way scene files write big
-    counts) is accepted as that integer.
+    counts) is accepted as that integer; a refusal quotes the value as
+    written (``1e+300``, not its 301 digits).
     """
     if isinstance(value, OverflowedNumber):
         fail(where, value.reason)
+    written = value
     if isinstance(value, float) and math.isfinite(value) and value.is_integer():
         value = int(value)
     if isinstance(value, bool) or not isinstance(value, int):
         fail(where, f'expected an integer, got {quote(value)}')
     if value < minimum:
-        fail(where, f'must be >= {minimum}, got {quote(value)}')
+        fail(where, f'must be >= {minimum}, got {quote(written)}')
+    if maximum is not None and value > maximum:
+        fail(where, f'must be <= {maximum}, got {quote(written)}')
     return int(value)
 
 

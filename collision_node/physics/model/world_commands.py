@@ -35,6 +35,9 @@ RequestId = Union[str, int, float, None]
 
 MAX_REQUEST_ID = 256          # characters of a string request_id
 MAX_STEPS = 10_000            # steps one ``step`` request may ask for
+# Largest impulse component, N s: keeps the velocity change of the lightest
+# particle finite in float64 (the speed bound itself is checked after it).
+MAX_IMPULSE = 1e30
 # Two spheres overlap when their centres are closer than this share of the
 # sum of their radii: touching (a rack of balls placed edge to edge) is
 # allowed despite the last bit of rounding.
@@ -287,7 +290,7 @@ def impulse_request(world: World, data: Any, source: str = 'impulse') -> int:
     if 'impulse' not in body:
         fail(f'{source}: impulse', 'missing (N s, e.g. [0.1, 0])')
     impulse = vector(body['impulse'], f'{source}: impulse', world.scene.dimensions,
-                     max_abs=1e30)
+                     max_abs=MAX_IMPULSE)
     world.apply_impulse(pid, impulse, source=source)
     return pid
 

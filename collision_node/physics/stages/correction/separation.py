@@ -70,13 +70,7 @@ from ...model.effects import Walls
 from ...model.energy import lift
 from ...step.pipeline import Contacts, Stage, StepContext
 from ..detection.narrowphase import line_of_action
-
-# Projection passes per step under gravity (one without: the lecture's).
-GRAVITY_PASSES = 4
-# 'kernel' (compiled: contact_kernels.project_overlaps and pay_for_lift) and
-# 'numpy' (the vectorised reference); test/test_separation_kernels.py asserts
-# they move and book the same.
-BACKENDS = ('kernel', 'numpy')
+from ...model.tunables import BACKENDS, GRAVITY_PASSES
 
 
 def held_by_walls(position: np.ndarray, radius: np.ndarray, push: np.ndarray, walls: Walls,

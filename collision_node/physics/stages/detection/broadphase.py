@@ -36,25 +36,13 @@ import numpy as np
 from . import grid_kernels
 from .grid_kernels import Grid
 from ...step.pipeline import Stage, StepContext
+from ...model.tunables import (CLASS_RATIO, SKIN_STEPS, SKIN_MAX_RADII, SKIN_MIN_RADII,
+                               MAX_MOVER_SHARE, ALL_PAIRS_UP_TO)
 
-# Reaches within one size class differ by less than this factor: the
-# searches of a class overshoot by at most this ratio in distance.
-CLASS_RATIO = 2.0
 # The pair test |p_i - p_j|^2 <= (reach_i + reach_j)^2 (1 + QUERY_SLACK) is a
 # little generous, so that rounding never drops a pair; the grid's cell
 # search is wider still (``grid_kernels.SCAN_SLACK``).
 QUERY_SLACK = grid_kernels.PAIR_SLACK
-# Skin of the Verlet list: about SKIN_STEPS steps of travel at the rms speed,
-# at most SKIN_MAX_RADII median radii (a wider skin costs more pairs than
-# the searches it saves), at least SKIN_MIN_RADII of them.
-SKIN_STEPS = 20.0
-SKIN_MAX_RADII = 1.5
-SKIN_MIN_RADII = 0.05
-# Search afresh once more than this share of the particles are movers.
-MAX_MOVER_SHARE = 0.02
-# Up to this many particles every pair is a candidate: cheaper than any
-# search for the handful of bodies of a cradle or a billiards table.
-ALL_PAIRS_UP_TO = 48
 
 _EMPTY = np.zeros(0, dtype=np.int64)
 

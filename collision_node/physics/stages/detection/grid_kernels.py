@@ -45,31 +45,11 @@ from ...step import numba_cache  # noqa: F401 (chooses numba's cache directory f
 from ...law.primitives import dot3
 
 from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
+from ...model.tunables import (PAIR_SLACK, SCAN_SLACK, MAX_CELLS_PER_AXIS, CELL_REACHES,
+                               DENSE_CELLS_PER_ITEM, CELL_MARGIN, DENSE_AXIS_CELLS)
 
-# The relative slack of the pair test (``broadphase.QUERY_SLACK``, same value).
-PAIR_SLACK = 1e-9
-# Cell search boxes are widened by this much more: the exact test above
-# passes pairs up to the slack beyond reach_i + reach_j, and the box must
-# hold them all after the rounding of (x - corner) / cell.
-SCAN_SLACK = 1e-6
-# Cells are at least extent / 2^40 wide: integer cell indices stay < 2^41.
-MAX_CELLS_PER_AXIS = 2.0 ** 40
 # Multipliers of the cell hash (large odd constants: neighbouring cells
 # land in unrelated buckets).
-# Cell width in the class's largest reach: 2 scans 3 cells per axis, 1 scans
-# 5 smaller ones (a box closer to the sphere searched: fewer candidates).
-CELL_REACHES = 2.0
-# A class whose occupied box has at most this many cells per particle (plus
-# a few) gets a dense table: no hashing, rows of cells read in one range.
-DENSE_CELLS_PER_ITEM = 16.0
-# Cells are this much wider than CELL_REACHES reaches: a search (at most two
-# reaches plus SCAN_SLACK) then stays within one cell of the query's cell
-# even after the rounding of (x - corner) / cell (at most about 2^-24 cells
-# in a dense table), so a dense class can scan its neighbour cells without
-# computing the search box (``_dense_pairs``).
-CELL_MARGIN = 4e-6
-# The bound on the cells per axis that rounding argument assumes.
-DENSE_AXIS_CELLS = 2 ** 24
 _H1, _H2, _H3 = 0x9E3779B97F4A7C15 - (1 << 64), 0xC2B2AE3D27D4EB4F - (1 << 64), 0x165667B19E3779F9
 
 

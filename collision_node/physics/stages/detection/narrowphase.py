@@ -17,8 +17,7 @@ import numpy as np
 
 from .narrowphase_kernels import find_overlaps
 from ...step.pipeline import Contacts, Stage, StepContext
-
-BACKENDS = ('kernel', 'numpy')
+from ...model.tunables import BACKENDS
 
 
 def line_of_action(offset: np.ndarray, relative_velocity: np.ndarray

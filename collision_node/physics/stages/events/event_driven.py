@@ -91,20 +91,10 @@ from ...model.effects import Effects
 from ...step.pipeline import Pipeline, Stage, StepContext
 from ..detection.broadphase import candidate_pairs
 from ...model.state import ParticleState
+from ...model.tunables import (ACCELERATION_TOLERANCE, MAX_FALLBACK_HOLD, PARTICLES_PER_CELL,
+                               SLOTS_PER_PARTICLE, VELOCITY_TOLERANCE)
 
-PAIR, WALL, CELL = ek.PAIR, ek.WALL, ek.CELL
 
-# Cells hold about this many particles (cells are never narrower than a
-# contact diameter): fewer means more cell crossings, more means more
-# neighbours per prediction. A crossing predicts only the newly entered layer
-# of cells, so small cells pay: 0.25 was about the fastest of 1, 0.7, 0.5,
-# 0.35, 0.25 and 0.1 (docs/performance.md).
-PARTICLES_PER_CELL = 0.25
-# Steps in a row that go straight to the step solver after fallbacks, at most.
-MAX_FALLBACK_HOLD = 63
-# Slots of the cell table per particle, at most (an open scene that spreads
-# out shares slots between far cells; the neighbour query tells them apart).
-SLOTS_PER_PARTICLE = 8
 # What the loop is handed when it records no impacts and books no losses
 # (never written: not worth fresh arrays every step).
 _NO_RECORDS = (np.empty((0, ek.RECORD_COLUMNS)), np.empty((0, 2), dtype=np.int64))
@@ -262,7 +252,7 @@ class EventDrivenStage(Stage):
         info = np.zeros(rk.INFO_SIZE)
         removed = np.empty(m)
         rk.project_velocities(velocity, inv_mass, m, c_i, c_j, c_normal,
-                              rk.VELOCITY_TOLERANCE * rest_speed, removed, info)
+                              VELOCITY_TOLERANCE * rest_speed, removed, info)
         pairs = c_j[:m] >= 0
         if np.any(removed[pairs] != 0.0):
             ctx.book('restitution', removed[pairs], c_i[:m][pairs], c_j[:m][pairs])
@@ -272,7 +262,7 @@ class EventDrivenStage(Stage):
         rk.warm_forces(m, c_i, c_j, self._old_partner, self._old_force, force)
         accel = np.empty((n, 3))
         rk.support_forces(accel, inv_mass, self.gravity, m, c_i, c_j, c_normal, force,
-                          rk.ACCELERATION_TOLERANCE * float(np.linalg.norm(self.gravity)), info)
+                          ACCELERATION_TOLERANCE * float(np.linalg.norm(self.gravity)), info)
         rest = np.empty((n, ek.S_PARTNERS + rk.PARTNERS), dtype=np.int64)
         partner_force = np.zeros((n, rk.PARTNERS))
         supported, walls = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)

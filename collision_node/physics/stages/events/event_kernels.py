@@ -68,7 +68,7 @@ from ...step import numba_cache  # noqa: F401,I100 (chooses numba's cache direct
 from ...law.primitives import dot3, line_of_action, pair_impulse  # noqa: I100
 from numba import njit  # noqa: E402,I100
 
-PAIR, WALL, CELL, REFRESH = 0, 1, 2, 3
+PAIR_EVENT, WALL_EVENT, CELL_EVENT, REFRESH_EVENT = 0, 1, 2, 3
 # What a run returns: the step is done, or an event the TC model would have
 # to alter under gravity (resting contact) or the event budget ended it.
 # Or the impact records are full: the caller gives larger ones and calls again

@@ -47,30 +47,10 @@ import numpy as np
 from ...step import numba_cache  # noqa: F401,I100 (chooses numba's cache directory first)
 from ...law.primitives import dot3, push_pair, line_of_action  # noqa: I100
 from numba import njit  # noqa: E402,I100
+from ...model.tunables import (RESTING_GAP, RESTING_ULPS, PARTNERS, OVER_RELAXATION,
+                               MAX_SWEEPS)
 
-# A contact rests when its gap is at most this fraction of r_i + r_j ...
-RESTING_GAP = 1e-9
-# ... plus this many floating-point spacings of the largest coordinate involved.
-RESTING_ULPS = 64.0
 _EPSILON = 2.220446049250313e-16
-# Resting partners a particle can hold (12 touch an equal sphere in 3-D;
-# overlapping or mixed sizes can touch more). More ends the exact attempt.
-PARTNERS = 16
-# Both solves sweep over-relaxed to their tolerance, then plainly (Gauss-
-# Seidel) to it again: a chain or a pile of n rows needs about n^2 plain
-# sweeps but about n over-relaxed ones (the 500-disc pile: 2,000 to 5,000
-# plain sweeps a step, measured), and the plain ones leave a lone contact
-# solved exactly (a ball on a floor: speed and acceleration exactly 0).
-OVER_RELAXATION = 1.6
-# Sweeps end when no resting normal speed exceeds this fraction of the
-# resting speed, and when no force changes any relative acceleration by
-# more than this fraction of |g|; at most MAX_SWEEPS of each.
-# (1e-11 |g| leaves a packed pile sinking into itself by ½ 1e-10 dt^2,
-# 1e-15 m a step at 240 Hz; 1e-13 |g| cost the 500-disc pile 3 to 6 times
-# the sweeps.)
-VELOCITY_TOLERANCE = 1e-12
-ACCELERATION_TOLERANCE = 1e-11
-MAX_SWEEPS = 20000
 # Status: the supports are found; or a particle has more resting partners than PARTNERS.
 FOUND, TOO_MANY = 0, 1
 # Columns of ``info`` (float64): velocity sweeps, force sweeps, largest

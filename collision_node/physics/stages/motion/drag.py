@@ -23,11 +23,7 @@ import numpy as np
 
 from ...model.effects import Drag
 from ...step.pipeline import Stage, StepContext
-
-# Below this lambda dt, (dt - phi) / lambda uses its Taylor series (the
-# closed form cancels there); the first term left out is below 5e-14
-# relative, as is the cancellation error just above the limit.
-SERIES_LIMIT = 1.0e-2
+from ...model.tunables import SERIES_LIMIT
 
 
 def drag_step(v0: np.ndarray, inv_mass: np.ndarray, drag: Drag, gravity: Optional[np.ndarray],

@@ -44,14 +44,8 @@ from ...model.effects import GRAVITY_THRESHOLD_STEPS
 from .sleep_kernels import near_sleepers, settle_islands, sleepers_within_reach
 from ...model.state import ParticleState
 from ...step.pipeline import Pipeline, Stage, StepContext
+from ...model.tunables import CONTACT_MARGIN, DIRECT_PAIRS
 
-# Particles closer than this share of their radii sum (gap) are in contact
-# for islands and waking: resting contacts end a step touching up to the
-# solver's slop, and the broadphase's list always holds pairs this near.
-CONTACT_MARGIN = 0.02
-# Up to this many (awake, sleeping) pairs the wake stage tests every pair
-# directly; beyond, a k-d tree of the sleepers finds the candidates.
-DIRECT_PAIRS = 1 << 15
 _NO_PAIRS = np.zeros(0, dtype=np.int64)
 _NO_SPIN = np.zeros((0, 3))
 
@@ -254,13 +248,14 @@ class SleepingPipeline(Pipeline):
         self.shared = _Shared()
         self.wake = WakeStage(self.shared, gravity)
         self.sleep = SleepStage(self.shared, gravity, sleep_time)
+        self.frame(self.wake, self.sleep)
 
     def run(self, ctx: StepContext) -> None:
         """Run every stage, or only the two sleep stages when every particle sleeps."""
-        self.wake.run(ctx)
+        self.run_stage(self.wake, ctx)
         if self.shared.anyone_awake:
             super().run(ctx)
-        self.sleep.run(ctx)
+        self.run_stage(self.sleep, ctx)
 
     def explain(self) -> str:
         """Return the numbered stages, with ``wake`` before and ``sleep`` after them.

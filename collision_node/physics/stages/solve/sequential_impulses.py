@@ -66,38 +66,14 @@ from ...law.contact_law import (apply_impulses, apply_pair_friction, apply_pair_
 from ...model.effects import Walls
 from ...law.impulse import closing_speed
 from ...step.pipeline import Contacts, Stage, StepContext
+from ...model.tunables import (BACKENDS, RESIDUAL_FRACTION, SHOCK_PASSES, STRIKE_FACTOR, WALL_SLOP,
+                               WALL_ULPS)
 
-# Solvers: 'kernel' (compiled, one contact at a time) and 'numpy' (the
-# vectorised reference: one colour per call, overflow one by one).
-BACKENDS = ('kernel', 'numpy')
 # Orders the kernel visits contacts in: 'pairs' (the broadphase's sorted
 # (i, j) order, shock passes by height) or 'colours' (the reference's).
 VISITS = ('pairs', 'colours')
 
 
-# Closing speeds below this fraction of the restitution threshold count as
-# resolved, so sweeps over resting contact stop at rounding-level residues.
-RESIDUAL_FRACTION = 1.0e-3
-# An impulse marks its particles struck (see _run_dissipative) only if its
-# pair closed at this many times the restitution threshold. Closing speeds
-# also build up inside a resting stack whose sweeps did not converge in the
-# budget (in a column of 20 under `fast`: up to 8.7 times the threshold);
-# passing those on as shocks made the stack bounce and gain energy through
-# separation (measured: at factor 1 or 2 a column of 20 at e = 1 kept 0.2 to
-# 0.7 m/s and a 200-disc pile gained 4.4e-3 J in a step; at 10 neither).
-# The price: an impact slower than 10 thresholds (0.8 m/s at 240 Hz under
-# 9.81 m/s^2) onto resting balls is not passed on through them.
-STRIKE_FACTOR = 10.0
-# Passes of shock propagation at most (a particle resting on two others
-# needs a few: stopping it against one support can make it approach the
-# other).
-SHOCK_PASSES = 8
-# A particle within this fraction of its radius, plus WALL_ULPS floating-point
-# spacings at the plane's coordinate, of a wall plane touches it (the walls
-# stage places resting particles on the plane to rounding). Never a fraction
-# of the coordinate itself: 1e-9 of a plane at x = 1e9 m was a slop of 1 m.
-WALL_SLOP = 1.0e-9
-WALL_ULPS = 4.0
 # Empty and one-value arrays handed to the kernel where a scene has no such data.
 _NO_ROWS = np.zeros(0, dtype=np.int64)
 _NO_VALUES = np.zeros(0)

@@ -42,8 +42,8 @@ from ...model.impacts import WALL
 from ...step.pipeline import Stage, StepContext
 from .wall_kernels import (APPROACH, BACK, FRICTION_LOSS, NORMAL_IMPULSE, PARTICLE, POINT,
                            TANGENTIAL, WALLS_LOSS, wall_pass)
+from ...model.tunables import BACKENDS
 
-BACKENDS = ('kernel', 'numpy')
 _NONE = np.zeros(0)
 _NO_SPIN = np.zeros((0, 3))
 

@@ -72,12 +72,14 @@ from ...law.contact_law import (apply_pair_friction, apply_pair_impulses, apply_
                                 thresholded, wall_coefficient)
 from ...model.effects import Drag, Walls
 from ...law.paths import entering_time, parabola_sphere_time
-from .swept_kernels import EFFECTS as KERNEL_EFFECTS, in_contact, sweep, workspace
+from ...law.primitives import EFFECTS as KERNEL_EFFECTS
+from .swept_kernels import in_contact, sweep, workspace
 from ...step.pipeline import Stage, StepContext
 from ..solve.batched_impulses import shared_scale
 from ..detection.broadphase import BroadphaseStage
 from ..motion.drag import advance_with_drag
 from ..detection.narrowphase import line_of_action
+from ...model.tunables import STRIKE_FACTOR, TOUCH_SLOP
 
 
 def _on_path(position: np.ndarray, velocity: np.ndarray, fall: Optional[np.ndarray],
@@ -200,17 +202,6 @@ def wall_impact_times(position: np.ndarray, velocity: np.ndarray, radius: np.nda
             times[:, 2 * axis] = local_time + low
             times[:, 2 * axis + 1] = local_time + high
     return times
-
-
-# An impact closing at this many restitution thresholds strikes its
-# particles, whose resting contacts become impacts (the sequential solve's
-# STRIKE_FACTOR, for the same reason: closing speeds of a few thresholds
-# build up inside a resting stack and must not be passed on as shocks).
-STRIKE_FACTOR = 10.0
-# Under gravity, a pair (or a particle and a wall) closer than this fraction
-# of its contact distance at the step start is in resting contact (see
-# SweptContactStage._in_contact).
-TOUCH_SLOP = 1.0e-6
 
 
 class _Escapes:

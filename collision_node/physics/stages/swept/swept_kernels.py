@@ -28,13 +28,11 @@ import numpy as np
 from ...step import numba_cache  # noqa: F401 (chooses numba's cache directory first)
 from numba import njit  # noqa: E402 (after the cache directory is chosen)
 
-from ...law.primitives import dot3, pair_friction, line_of_action, pair_impulse  # noqa: E402
+from ...law.primitives import (dot3, FRICTION, line_of_action, pair_friction,
+                               pair_impulse, RESTITUTION, WALLS)  # noqa: E402
+from ...model.tunables import REACH_MARGIN, BISECTIONS
 
-# As paths.BISECTIONS: steps that finish a quartic root the eigenvalues missed.
-BISECTIONS = 60
 # Rows of the per-particle loss array the step returns.
-RESTITUTION, WALLS, FRICTION = 0, 1, 2
-EFFECTS = ('restitution', 'walls', 'friction')
 # Columns of the float record of each impact: time, point (3), normal (3),
 # normal impulse, tangential impulse, approach speed.
 RECORD_WIDTH = 10
@@ -273,12 +271,6 @@ def _grow(records, index, count):
     bigger_index = np.empty((2 * index.shape[0] + 16, 2), dtype=np.int64)
     bigger_index[:count] = index[:count]
     return bigger, bigger_index
-
-
-# Relative margin of ``_out_of_reach``: far above the rounding of its
-# distance test (a few ulps) and of the root ``pair_time`` computes (at worst
-# about 3e-8 relative, for a grazing pair, where its discriminant cancels).
-REACH_MARGIN = 1.0e-6
 
 
 @njit(cache=True, error_model='numpy', inline='always')
