@@ -10,7 +10,10 @@ and the JSON of the state reached (``"interrupted": true``) are still
 written, and the exit code is 130. A world too large for the machine's
 memory (``MemoryError`` while loading or stepping) is one line and exit 2.
 ``--profile`` adds the wall time per stage (``World.profile``) to the
-output and the JSON.
+output and the JSON. ``--record PATH`` also writes the run as a rosbag2 bag
+(MCAP) of what the node would publish, stamped with simulated time
+(:mod:`collision_node.recording`; it needs the ROS 2 message packages,
+imported only then).
 """
 
 from __future__ import annotations
@@ -80,6 +83,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument('--profile', action='store_true',
                         help='print the wall time per stage (ms per step and share; the '
                              'first step, which loads the compiled code, apart)')
+    parser.add_argument('--record', metavar='PATH',
+                        help='also write the run as a rosbag2 bag (MCAP) in the new folder PATH')
+    parser.add_argument('--record-rate', type=float, metavar='HZ',
+                        help='frames per simulated second in the bag (default: 30, the '
+                        "node's publish_rate; at most one per step)")
     parser.add_argument('--accuracy', help='preset (fast, balanced, accurate, exact) or a '
                         'YAML/JSON mapping such as "{preset: fast, substeps: 2}"; '
                         'overrides the scene\'s accuracy')
@@ -132,6 +140,18 @@ def run(world: World, steps: int, show_progress: bool = True,
     return time.perf_counter() - start
 
 
+def _calls(*hooks: Optional[Callable[[], None]]) -> Optional[Callable[[], None]]:
+    """Return one hook that calls every given one in order (None when none is given)."""
+    given = [hook for hook in hooks if hook is not None]
+    if len(given) <= 1:
+        return given[0] if given else None
+
+    def every() -> None:
+        for hook in given:
+            hook()
+    return every
+
+
 def check_out(out: str, flag: str = '--out') -> None:
     """Refuse a ``flag`` target (``--out``) that cannot be written, before any step is run.
 
@@ -182,6 +202,40 @@ def check_pictures(args: argparse.Namespace) -> None:
         if key in seen:
             raise UsageError(f'{flag} {value}: also the file of {seen[key]}')
         seen[key] = flag
+
+
+def check_record(args: argparse.Namespace) -> None:
+    """Refuse ``--record`` and ``--record-rate`` values that cannot work, before any step."""
+    if args.record_rate is not None:
+        if args.record is None:
+            raise UsageError('--record-rate needs --record PATH')
+        if not (math.isfinite(args.record_rate) and args.record_rate > 0.0):
+            raise UsageError(f'--record-rate must be a finite number > 0, got {args.record_rate}')
+    if args.record is not None:
+        try:
+            from .recording.bag import BagTargetError, check_target
+        except ImportError as error:
+            raise UsageError(f'--record needs {error.name} (pip install -r requirements.txt)'
+                             ) from None
+        try:
+            check_target(args.record)
+        except BagTargetError as error:
+            raise UsageError(f'--record {args.record}: {error}') from None
+
+
+def open_recording(args: argparse.Namespace, world: World) -> Any:
+    """Return the run's recording (:class:`~.recording.offline.RunRecording`), or None."""
+    if args.record is None:
+        return None
+    from .recording.bag import BagTargetError
+    from .recording.definitions import DefinitionError
+    from .recording.offline import DEFAULT_RATE, RunRecording
+    rate = DEFAULT_RATE if args.record_rate is None else args.record_rate
+    try:
+        return RunRecording(args.record, world, rate)
+    except (BagTargetError, DefinitionError, OSError) as error:
+        text = error.strerror if isinstance(error, OSError) and error.strerror else error
+        raise UsageError(f'--record {args.record}: {text}') from None
 
 
 def steps_to_run(args: argparse.Namespace, duration: float, dt: float) -> int:
@@ -251,6 +305,7 @@ def _main(argv: Optional[Sequence[str]]) -> int:
         if args.out is not None:
             check_out(args.out)
         check_pictures(args)
+        check_record(args)
         scene = load_scene(args.scene)
         if args.accuracy is not None:
             scene = scene.with_accuracy(parse_accuracy_text(args.accuracy, scene.effects,
@@ -271,6 +326,11 @@ def _main(argv: Optional[Sequence[str]]) -> int:
     if args.explain:
         print(world.explain())
         return 0
+    try:
+        recording = open_recording(args, world)
+    except UsageError as error:
+        print(f'simulate: error: {error}', file=sys.stderr)
+        return EXIT_BAD_INPUT
     start = {'kinetic': world.kinetic_energy(), 'momentum': world.momentum(),
              'energy': world.energy()}
     recorder = None
@@ -281,15 +341,23 @@ def _main(argv: Optional[Sequence[str]]) -> int:
     # lose what the first one kept.
     with _StopRequest() as stop:
         try:
-            wall_seconds = run(world, steps, stop=stop, after_step=recorder)
+            wall_seconds = run(world, steps, stop=stop,
+                               after_step=_calls(recorder, None if recording is None
+                                                 else recording.after_step))
         except NonFiniteStateError as error:
             print(f'simulate: error: {scene.name}: {error}', file=sys.stderr)
+            if recording is not None:
+                recording.finish()
             return 1
         except MemoryError as error:
             doing = f'in step {world.steps + 1} of {steps} ({len(world.state)} particles)'
             print(f'simulate: error: {scene.name}: {out_of_memory(error, doing)}',
                   file=sys.stderr)
+            if recording is not None:
+                recording.finish()
             return EXIT_BAD_INPUT
+        # The bag is finished before the JSON is made: its last frame is the final state.
+        record_error = None if recording is None else recording.finish()
         result = build_result(world, start, wall_seconds)
         if args.profile:
             result['profile'] = profile_record(world)
@@ -312,7 +380,11 @@ def _main(argv: Optional[Sequence[str]]) -> int:
                 # Checked before the run; a full disk or /dev/full shows only now.
                 print(f'simulate: error: --out {args.out}: {error.strerror}', file=sys.stderr)
                 return EXIT_BAD_INPUT
-        if not write_pictures(args, world, recorder):
+        pictures_written = write_pictures(args, world, recorder)
+        if record_error is not None:
+            # A full disk mid-run: the run went on, the bag stops where the write failed.
+            print(f'simulate: error: --record {args.record}: {record_error}', file=sys.stderr)
+        if not pictures_written or record_error is not None:
             return EXIT_BAD_INPUT
         return EXIT_INTERRUPTED if stop.signal is not None else 0
 

@@ -83,15 +83,17 @@ def ros_env(domain_id: int) -> dict[str, str]:
     return env
 
 
-def start(name: str, args: list[str], domain_id: int) -> subprocess.Popen:
+def start(name: str, args: list[str], domain_id: int,
+          preexec: Optional[Callable[[], None]] = None) -> subprocess.Popen:
     """Start an installed executable on ``domain_id``.
 
     Its output goes to unnamed temporary files (a pipe nobody reads while
     the test runs could fill up and block the process); ``output`` reads them.
+    ``preexec`` runs in the child before the executable (e.g. to set a limit).
     """
     out, err = tempfile.TemporaryFile('w+'), tempfile.TemporaryFile('w+')
     process = subprocess.Popen([executable(name), *args], env=ros_env(domain_id),
-                               stdout=out, stderr=err, text=True)
+                               stdout=out, stderr=err, text=True, preexec_fn=preexec)
     process.output_files = (out, err)
     return process
 
@@ -190,11 +192,12 @@ class Probe:
 class NodeUnderTest:
     """The installed ``collision_node`` in a process, with a probe on its domain."""
 
-    def __init__(self, args: list[str], namespace: str = '') -> None:
+    def __init__(self, args: list[str], namespace: str = '',
+                 preexec: Optional[Callable[[], None]] = None) -> None:
         """Start the node and wait until its first status arrives."""
         self.domain_id = unique_domain_id()
         ros_args = ['--ros-args', *(['-r', f'__ns:={namespace}'] if namespace else []), *args]
-        self.process = start('collision_node', ros_args, self.domain_id)
+        self.process = start('collision_node', ros_args, self.domain_id, preexec)
         self.probe = Probe(self.domain_id)
         self.prefix = namespace.rstrip('/') + '/' if namespace else ''
         self.statuses = self.probe.collect(String, self.prefix + 'status', STATUS_QOS)

@@ -77,6 +77,8 @@ def test_registration_is_what_ros2_run_and_ros2_pkg_look_up(prefix):
     assert '<name>collision_node</name>' in (share / 'package.xml').read_text()
     assert (share / 'scenes' / 'oblique_pair.yaml').read_text() == \
         (ROOT / 'scenes' / 'oblique_pair.yaml').read_text()
+    assert (share / 'config' / 'collision_node.yaml').read_text() == \
+        (ROOT / 'config' / 'collision_node.yaml').read_text()
     for name in EXECUTABLES:
         text = resolve(name).read_text()
         assert text.startswith(f'#!{sys.executable}\n'), text

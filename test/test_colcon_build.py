@@ -83,6 +83,9 @@ def test_colcon_build_then_ros2_run_resolution(tmp_path, monkeypatch):
     assert Path(get_package_prefix(PACKAGE)).resolve() == prefix.resolve()
     share = Path(get_package_share_directory(PACKAGE))
     assert '<name>collision_node</name>' in (share / 'package.xml').read_text()
+    # The parameters file is installed where --params-file $(ros2 pkg prefix ...) finds it.
+    assert (share / 'config' / 'collision_node.yaml').read_text() == \
+        (ROOT / 'config' / 'collision_node.yaml').read_text()
     executables = declared_console_scripts()
     assert sorted(executables) == ['collision_node', 'simulate', 'viewer']
     for name in executables:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import sys
 import time
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import rclpy
 from geometry_msgs.msg import PoseArray, VelocityStamped
@@ -27,14 +27,17 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
-from msg_adapters import (clock_message, marker_array_bytes, point_cloud_bytes,
-                          pose_array_bytes, velocities_bytes)
+from msg_adapters import clock_bytes, velocities_bytes
+from msg_adapters.strings import string_bytes
 
 from ..physics.model.accuracy import parse_accuracy_text
 from ..physics.step.kernels import prepare as prepare_kernels
 from ..physics.model.scene import load_scene
 from ..physics.model.validation import SceneError
 from ..physics.step.world import NonFiniteStateError, World
+from ..recording.bag import BagTargetError, check_target
+from ..recording.definitions import DefinitionError
+from ..recording.recorder import FRAME_MESSAGES, Recorder
 from .cli import check_command_line
 from .commands import CommandInterface, out_of_memory
 from .pacing import Lag, Pacer, RateMeter, STEP_BUDGET
@@ -66,6 +69,9 @@ class CollisionNode(Node):
         problem = invalid_parameter(value)
         if problem:
             raise SceneError(f'parameter {problem}')
+        if value['record']:
+            # Refused before the scene is even loaded.
+            self._record_target_check(value['record'], check_target)
         self.scene = load_scene(value['scene'] or DEFAULT_SCENE)
         if value['accuracy']:
             self.scene = self.scene.with_accuracy(
@@ -105,6 +111,12 @@ class CollisionNode(Node):
         self.status_timer = self.create_timer(STATUS_PERIOD, self._publish_status,
                                               clock=self.steady)
         self.reports = Reports(self, self.status, self.steady)   # /diagnostics, collisions
+        self.state_publishers = {'poses': self.pub_poses, 'state': self.pub_state,
+                                 'markers': self.pub_markers}
+        self.recorder: Optional[Recorder] = None
+        self.recording_reported = False
+        if value['record']:
+            self._record_target_check(value['record'], self._start_recording)
         self.add_pre_set_parameters_callback(integers_as_doubles)
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -214,23 +226,32 @@ class CollisionNode(Node):
         self.publish_outputs()
 
     def publish_outputs(self) -> None:
-        """Publish the current state; all messages carry the same stamp and frame."""
+        """Publish the current state; all messages carry the same stamp and frame.
+
+        A message is built only when somebody subscribes or the node records;
+        the recording gets the bytes that are published.
+        """
         s, t, frame = self.world.state, self.world.time, self.frame_id
+        recorder = self.recorder if self.recorder is not None and self.recorder.active else None
         if self.publish_clock:
-            self.pub_clock.publish(clock_message(t))
-        if self.pub_poses.get_subscription_count():
-            self.pub_poses.publish(pose_array_bytes(s.position, s.orientation, t, frame))
-        if self.pub_state.get_subscription_count():
-            self.pub_state.publish(point_cloud_bytes(s.ids, s.position, s.velocity, s.radius,
-                                                     s.inv_mass, t, frame))
-        if self.pub_markers.get_subscription_count():
-            self.pub_markers.publish(marker_array_bytes(s.position, s.radius, s.inv_mass, t,
-                                                        frame))
+            clock = clock_bytes(t)
+            self.pub_clock.publish(clock)
+            if recorder is not None:
+                recorder.write('clock', clock, t)
+        for key, publisher in self.state_publishers.items():
+            listened = publisher.get_subscription_count() > 0
+            if listened or recorder is not None:
+                data = FRAME_MESSAGES[key](s, t, frame)
+                if listened:
+                    publisher.publish(data)
+                if recorder is not None:
+                    recorder.write(key, data, t)
         if self.pub_velocities.get_subscription_count():
             publish = self.pub_velocities.publish
             for message in velocities_bytes(s.ids, s.velocity, s.angular_velocity, t, frame):
                 publish(message)
         self.reports.publish_collisions(self.world, t, frame)
+        self._report_recording_error()
 
     def status(self) -> dict[str, Any]:
         """Return the node's status as a JSON-ready mapping."""
@@ -242,8 +263,63 @@ class CollisionNode(Node):
         return report
 
     def _publish_status(self) -> None:
-        """Publish the status on ``status`` (JSON)."""
-        self.pub_status.publish(String(data=json.dumps(self.status())))
+        """Publish the status on ``status`` (JSON), and record it."""
+        data = string_bytes(json.dumps(self.status()))
+        self.pub_status.publish(data)
+        if self.recorder is not None:
+            self.recorder.write('status', data, self.world.time)
+            self._report_recording_error()
+
+    # -- recording (the bag itself is collision_node.recording) -----------
+
+    @staticmethod
+    def _record_target_check(path: str, action: Callable[[str], None]) -> None:
+        """Run ``action(path)``; a path that cannot become a bag is a parameter error."""
+        try:
+            action(path)
+        except BagTargetError as error:
+            raise BagTargetError(f'parameter record: {path}: {error}') from None
+        except OSError as error:
+            raise BagTargetError(f'parameter record: {path}: {error.strerror or error}'
+                                 ) from None
+
+    def _start_recording(self, path: str) -> None:
+        """Open the bag under the topics' resolved names; impacts are recorded from now on."""
+        names = {key: publisher.topic_name for key, publisher in
+                 [*self.state_publishers.items(), ('clock', self.pub_clock),
+                  ('status', self.pub_status), ('collisions', self.reports.pub_collisions)]}
+        self.recorder = Recorder(path, names)
+        self.reports.recorder = self.recorder
+        self.reports.follow_listeners(self.world)
+        self.get_logger().info(f'recording into {path} (rosbag2, MCAP)')
+
+    def _report_recording_error(self) -> None:
+        """Log once that the recording stopped (a full disk); the node goes on."""
+        recorder = self.recorder
+        if recorder is not None and recorder.error is not None and not self.recording_reported:
+            self.recording_reported = True
+            self.get_logger().error(f'record {recorder.path}: {recorder.describe_error()}; '
+                                    'the node goes on without recording')
+
+    def close_recording(self) -> None:
+        """Finish the bag (index, summary, metadata.yaml); say so, or why it could not."""
+        recorder = self.recorder
+        if recorder is None or recorder.bag.closed and recorder.error is None:
+            return
+        recorder.close()
+        # After Ctrl-C or SIGTERM the context is gone, and with it /rosout: a logger
+        # of its own logs to the console only.
+        logger = rclpy.logging.get_logger(f'{self.get_logger().name}.recording')
+        if recorder.error is None:
+            logger.info(f'recorded {recorder.bag.message_count} messages into {recorder.path}')
+        elif not self.recording_reported:
+            self.recording_reported = True
+            logger.error(f'record {recorder.path}: {recorder.describe_error()}')
+
+    def destroy_node(self) -> None:
+        """Finish the recording, then destroy the node."""
+        self.close_recording()
+        super().destroy_node()
 
     # -- commands (the topics and services are in commands.py) ------------
 
@@ -282,7 +358,8 @@ def main(args: Optional[list[str]] = None) -> int:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (SceneError, ParameterException, NameValidationException) as error:
+    except (SceneError, ParameterException, NameValidationException, DefinitionError,
+            BagTargetError) as error:
         # NameValidationException: a name rclpy refuses that rcl's parser let through.
         rclpy.logging.get_logger(NODE_NAME).error(' '.join(str(error).split()))
         return 2

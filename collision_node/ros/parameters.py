@@ -69,6 +69,10 @@ PARAMETERS: dict[str, tuple[Any, ParameterDescriptor]] = {
     'max_particles': (100_000, _descriptor(
         'Most particles the world may hold; larger spawns are rejected',
         ParameterType.PARAMETER_INTEGER, read_only=True, integers=MAX_PARTICLES_RANGE)),
+    'record': ('', _descriptor(
+        'Record what the node publishes as a rosbag2 bag (MCAP) in this new folder, '
+        'stamped with simulated time; empty: no recording',
+        ParameterType.PARAMETER_STRING, read_only=True)),
 }
 
 
