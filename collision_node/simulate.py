@@ -9,6 +9,8 @@ Ctrl-C (SIGINT) or SIGTERM stops the run at a step boundary: the summary
 and the JSON of the state reached (``"interrupted": true``) are still
 written, and the exit code is 130. A world too large for the machine's
 memory (``MemoryError`` while loading or stepping) is one line and exit 2.
+``--profile`` adds the wall time per stage (``World.profile``) to the
+output and the JSON.
 """
 
 from __future__ import annotations
@@ -75,6 +77,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument('--explain', action='store_true',
                         help='print the step pipeline and exit')
     parser.add_argument('--quiet', action='store_true', help='no summary on stdout')
+    parser.add_argument('--profile', action='store_true',
+                        help='print the wall time per stage (ms per step and share; the '
+                             'first step, which loads the compiled code, apart)')
     parser.add_argument('--accuracy', help='preset (fast, balanced, accurate, exact) or a '
                         'YAML/JSON mapping such as "{preset: fast, substeps: 2}"; '
                         'overrides the scene\'s accuracy')
@@ -286,6 +291,8 @@ def _main(argv: Optional[Sequence[str]]) -> int:
                   file=sys.stderr)
             return EXIT_BAD_INPUT
         result = build_result(world, start, wall_seconds)
+        if args.profile:
+            result['profile'] = profile_record(world)
         if stop.signal is not None:
             result['interrupted'] = True
             result['steps_requested'] = steps
@@ -294,7 +301,9 @@ def _main(argv: Optional[Sequence[str]]) -> int:
                 print(f'interrupted by {signal.Signals(stop.signal).name} after {world.steps} '
                       f'of {steps} steps')
             print_summary(world, result)
-            sys.stdout.flush()
+        if args.profile:
+            print(world.profile().table())
+        sys.stdout.flush()
         if args.out is not None:
             try:
                 with open(args.out, 'w', encoding='utf-8') as handle:
@@ -351,6 +360,14 @@ def build_result(world: World, start: dict, wall_seconds: float) -> dict:
             'wall_seconds': wall_seconds,
         },
     }
+
+
+def profile_record(world: World) -> dict:
+    """Return the world's step profile as a JSON-ready mapping (times in ms)."""
+    profile = world.profile()
+    return {'steps': profile.steps, 'first_step_ms': profile.first_step_ms,
+            'ms_per_step': profile.ms_per_step,
+            'stages': [stage._asdict() for stage in profile.stages]}
 
 
 def print_summary(world: World, result: dict) -> None:

@@ -25,6 +25,9 @@ from std_msgs.msg import String
 
 from node_harness import Probe, start, stop, STATUS_QOS, unique_domain_id
 
+# Starts ROS processes or tests a ROS front end: `-m "not ros"` leaves it out.
+pytestmark = pytest.mark.ros
+
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGE = 'collision_node'
 EXECUTABLES = ('collision_node', 'simulate', 'viewer')

@@ -16,6 +16,9 @@ from collision_node.physics import parse_scene_text
 from collision_node.physics.model.scene import parse_spawn
 from collision_node.physics.model.validation import SceneError
 
+# Starts ROS processes or tests a ROS front end: `-m "not ros"` leaves it out.
+pytestmark = pytest.mark.ros
+
 
 def test_registered_as_a_subcommand():
     assert bench.SUBCOMMANDS['node-load'] == 'collision_node.bench.node_load'

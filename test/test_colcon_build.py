@@ -22,7 +22,11 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from ament_index_python.packages import get_package_prefix, get_package_share_directory
+
+# Starts ROS processes or tests a ROS front end: `-m "not ros"` leaves it out.
+pytestmark = pytest.mark.ros
 
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGE = 'collision_node'

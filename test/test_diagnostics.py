@@ -14,6 +14,9 @@ from collision_node.ros.diagnostics import (BALANCE_TOLERANCE, diagnostic_array,
                                             diagnostic_status, relative_balance_error)
 from collision_node.ros.status import status_report
 
+# Starts ROS processes or tests a ROS front end: `-m "not ros"` leaves it out.
+pytestmark = pytest.mark.ros
+
 
 def world_status(**overrides) -> dict:
     """Return the status of the oblique pair after 10 steps, with ``overrides`` applied."""

@@ -25,6 +25,9 @@ from collision_node.ros.commands import CommandInterface, LogBudget
 from msg_adapters.strings import string_text
 from node_harness import executable, NodeUnderTest, ros_env, unique_domain_id
 
+# Starts ROS processes or tests a ROS front end: `-m "not ros"` leaves it out.
+pytestmark = pytest.mark.ros
+
 SECRET = 'root:$6$saltsalt$0123456789abcdef:19000:0:99999:7:::'
 
 

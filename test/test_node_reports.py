@@ -31,6 +31,9 @@ from collision_node.ros.reports import Reports
 from msg_adapters import impacts_from_point_cloud, seconds_from_stamp
 from node_harness import executable, NodeUnderTest, ros_env, unique_domain_id
 
+# Starts ROS processes or tests a ROS front end: `-m "not ros"` leaves it out.
+pytestmark = pytest.mark.ros
+
 # Two balls closing at 1 m/s with 4.0005 m between their surfaces: one impact at
 # t = 4.0005 s (inside a step of 1 ms), late enough for a subscriber to be listening.
 M1, M2, V1, V2, RADIUS = 1.0, 3.0, 0.5, -0.5, 0.1

@@ -27,6 +27,9 @@ from msg_adapters import state_from_point_cloud
 from msg_adapters.strings import string_bytes
 from node_harness import executable, NodeUnderTest, ros_env, unique_domain_id
 
+# Starts ROS processes or tests a ROS front end: `-m "not ros"` leaves it out.
+pytestmark = pytest.mark.ros
+
 PARTICLES = 16
 DT = 1.0 / 240.0
 BURST = 2000                 # the target is 10,000: see docs/performance.md

@@ -41,6 +41,7 @@ import numpy as np
 from ..physics.step.reference import end_penetration, missed_collisions
 from ..physics.model.scene import parse_scene
 from ..physics.step.world import World
+from ..scenarios import cradle, gas
 
 PRESET_ORDER = ('fast', 'balanced', 'accurate', 'exact')
 DT_FACTORS = (0.25, 1.0, 4.0)
@@ -53,10 +54,7 @@ COST_REPEATS = 3
 def _gas(count: int, radius: float, speed: float, dt: float, duration: float,
          seed: int) -> dict:
     """Return an elastic gas in a 1 m box."""
-    box = {'min': [0.0, 0.0, 0.0], 'max': [1.0, 1.0, 1.0]}
-    return {'dimensions': 3, 'dt': dt, 'duration': duration, 'effects': {'walls': box},
-            'generate': [{'kind': 'gas', 'count': count, 'radius': radius, 'mass': 0.01,
-                          'speed': speed, 'seed': seed, 'region': box}]}
+    return gas(count, radius, speed, mass=0.01, seed=seed, dt=dt, duration=duration)
 
 
 def _billiards() -> dict:
@@ -94,8 +92,10 @@ def _bouncing_ball() -> dict:
 
 def _pile(quick: bool) -> dict:
     """Return the shipped pile scene (240 discs poured under gravity, friction)."""
-    from ..physics.model.scene import load_yaml, resolve_scene_path
-    mapping = load_yaml(resolve_scene_path('pile').read_text(encoding='utf-8'))
+    from ..physics.model.guard import parse_text
+    from ..physics.model.scene import resolve_scene_path
+    path = resolve_scene_path('pile')
+    mapping = parse_text(path.read_text(encoding='utf-8'), str(path))
     mapping.pop('name', None)
     if quick:
         mapping['duration'] = 2.0
@@ -122,15 +122,12 @@ def apex_error(track: list, gravity: float = 9.81) -> float:
 
 def scenes(quick: bool) -> dict[str, dict]:
     """Return the benchmark's scenes as scene mappings (``quick``: smaller, shorter)."""
-    cradle = [{'position': [0.125 * k, 0.0], 'radius': 0.0625, 'mass': 0.5}
-              for k in range(5)]
-    cradle[0] = {'position': [-0.25, 0.0], 'velocity': [1.0, 0.0], 'radius': 0.0625,
-                 'mass': 0.5}
+    balls = cradle(5, 0.0625, 0.5, 1.0, -0.25, first=1, dimensions=2)
     out = {
         'oblique_pair': {'dimensions': 2, 'dt': 0.001, 'duration': 2.0, 'particles': [
             {'position': [-1.0, 0.25], 'velocity': [2.0, 0.0], 'radius': 0.5, 'mass': 1.0},
             {'position': [1.0, 0.0], 'radius': 0.5, 'mass': 3.0}]},
-        'cradle_5': {'dimensions': 2, 'dt': 0.01, 'duration': 1.0, 'particles': cradle},
+        'cradle_5': {'dimensions': 2, 'dt': 0.01, 'duration': 1.0, 'particles': balls},
         'bullet_target': {'dimensions': 3, 'dt': 1 / 60, 'duration': 0.1, 'particles': [
             {'position': [0.0, 0.0, 0.0], 'velocity': [756.0, 0.0, 0.0], 'radius': 0.0045,
              'mass': 0.15},

@@ -25,6 +25,7 @@ from typing import Optional, Sequence
 
 from ..physics.model.scene import parse_scene
 from ..physics.step.world import World
+from ..scenarios import gas
 
 REFERENCE_COUNT = 10_000
 REFERENCE_HALF = 2.5                         # m, half the side of gas_10k's cube
@@ -45,14 +46,11 @@ CONFIGS: dict[str, Optional[dict]] = {
 def gas_scene(count: int, effects: Optional[dict]) -> dict:
     """Return gas_10k's gas with ``count`` particles (same density) and ``effects``."""
     half = REFERENCE_HALF * (count / REFERENCE_COUNT) ** (1.0 / 3.0)
-    box = {'min': [-half] * 3, 'max': [half] * 3}
-    scene = {'name': 'bench_gas', 'dimensions': 3, 'dt': 1.0 / 240.0,
-             'generate': [{'kind': 'gas', 'count': count, 'radius': 0.05, 'mass': 1.0,
-                           'speed': 1.0, 'seed': 7, 'region': box}]}
-    if effects is not None:
-        scene['effects'] = {key: (dict(box) if value == WALLS else value)
-                            for key, value in effects.items()}
-    return scene
+    declared = None if effects is None else {key: value for key, value in effects.items()
+                                             if value != WALLS}
+    return gas(count, 0.05, 1.0, seed=7, low=-half, high=half,
+               walls=effects is not None and WALLS in effects.values(), effects=declared,
+               name='bench_gas', dt=1.0 / 240.0)
 
 
 def time_per_step(count: int, effects: Optional[dict], steps: int, accuracy: str) -> float:

@@ -4,76 +4,11 @@ A scene's ``accuracy`` key (the runner's ``--accuracy`` flag, the node's
 ``accuracy`` parameter) is a preset name or a mapping of settings,
 optionally based on a preset (``{preset: fast, substeps: 2}``); every
 setting not given comes from the preset (``balanced`` if none is named).
+Each setting is documented on its field of :class:`AccuracySettings`.
 Every numeric setting is bounded (``MAX_SUBSTEPS``, ``MAX_ITERATIONS``,
 ``MAX_EVENT_BUDGET``, ``MAX_COLLAPSE_TIME``, ``MAX_SLEEP_TIME``; tabled in
 docs/scenes.md, "Limits"), so no accepted value makes a step endless.
 
-Settings
---------
-``mode``
-    ``step``: fixed steps of dt through the stage pipeline. ``event``: the
-    exact event-driven mode (``stages/events/event_driven.py``): the world moves
-    from impact to impact, each impact time a closed-form root; only for
-    scenes whose effects it can do exactly (see :data:`EVENT_EFFECTS`).
-``substeps``
-    Each step of dt is split into this many equal substeps (step mode).
-``ccd``
-    Continuous collision detection (step mode): the broadphase reaches
-    ``radius + |v| dt`` and every impact, with a particle or a wall, is
-    found at its time of impact inside the step, so a small fast particle
-    never passes through another one (``stages/swept/swept_contacts.py``).
-``requery``
-    With ``ccd``: a particle that an impact sends out of the region its
-    broadphase query covered (its mid-step position, radius |v| dt / 2) is
-    queried again for the rest of its path, so no contact is found late
-    (as an overlap at the next step). Costs about 30 % more on a dense gas.
-``ordering``
-    How contacts that happen at the same instant and share a particle are
-    solved. ``sequential``: one after another (colour batches; with
-    ``ccd`` in time-of-impact order), which keeps chains exact (Newton's
-    cradle ends at (0, 0, 0, 0, v0); three balls [1, 0, -1] end at
-    [-1, 0, 1]). ``batched``: every such contact gets its impulse from the
-    same velocities at once (Jacobi): vectorised and independent of the
-    order, identical to ``sequential`` when no particle is in two
-    simultaneous contacts (a dilute gas, the cradle's one-pair-at-a-time
-    wave), but a particle struck from two sides at once loses energy
-    (three balls [1, 0, -1] end at [0, 0, 0]); impulses are shared 1/k by a
-    particle in k simultaneous contacts, so it never adds energy (pure
-    Jacobi does: +2.4 % in one step of a 200-particle gas). No preset uses
-    it: in our measurements it saved little time and cost energy.
-``iterations``
-    Sweeps of the contact solver per (sub)step; with ``ccd`` the rounds of
-    time-of-impact events per step (a chain of k touching balls needs k - 1).
-``collapse_time``
-    ``t_c`` of the TC model in event mode, seconds: an impact within t_c of
-    either particle's previous impact is treated as elastic, so inelastic
-    collapse (infinitely many impacts in finite time when e < 1) cannot
-    stall the event loop. Under gravity such an impact means a particle
-    coming to rest, and the step goes to the step solver instead (below);
-    contacts already resting at a step's start are held by support forces.
-``event_budget``
-    Event mode: events (impacts, cell crossings) a step may take, per
-    particle (at least ``MIN_EVENT_BUDGET`` in all). A step that needs more,
-    or that meets what it cannot do exactly under gravity (an impact onto
-    particles resting on others, a collapsing bounce), is rolled back and
-    solved by the ``accurate`` step solver instead (see
-    ``stages/events/event_driven.py``; counted as ``fallback_steps`` in the stats).
-``sleep_time``
-    Step mode under gravity: seconds an island (particles connected by
-    contacts; walls and static particles do not connect) must stay below
-    the sleep speed 2 |g| dt, in speed and in spin times radius, before it
-    falls asleep (``stages/sleeping/sleep.py``). A sleeping particle keeps its
-    mass for energy and messages but is static inside a step (no motion,
-    no gravity, infinite mass in the solve) until an awake particle comes
-    within reach of its island, or a command touches it, and then its
-    whole island wakes. Falling asleep zeroes velocity and spin; the
-    kinetic energy removed is booked as ``sleep`` (at most a few
-    (|g| dt)^2 m per particle). ``null`` (or ``false``): never sleep, the
-    pipeline is exactly that of a scene without the setting. Unused
-    without gravity (nothing rests) and in event mode.
-
-Presets
--------
 ======== ===== ======== === ======= ========== ========== ============= ============ ==========
 preset   mode  substeps ccd requery ordering   iterations collapse_time event_budget sleep_time
 ======== ===== ======== === ======= ========== ========== ============= ============ ==========
@@ -106,17 +41,59 @@ EVENT_EFFECTS = ('gravity', 'walls', 'restitution', 'restitution_threshold')
 
 @dataclass(frozen=True)
 class AccuracySettings:
-    """Tunables of the step pipeline, all in one object (see the module doc)."""
+    """Tunables of the step pipeline, all in one object (presets in the module doc)."""
 
+    # ``step``: fixed steps of dt through the stage pipeline. ``event``: the
+    # exact event-driven mode (``stages/events/event_driven.py``): the world
+    # moves from impact to impact, each impact time a closed-form root; only
+    # for scenes whose effects it can do exactly (:data:`EVENT_EFFECTS`).
     mode: str = 'step'
+    # Step mode: each step of dt is split into this many equal substeps.
     substeps: int = 1
+    # Continuous collision detection (step mode): the broadphase reaches
+    # radius + |v| dt and every impact, with a particle or a wall, is found
+    # at its time of impact inside the step, so a small fast particle never
+    # passes through another one (``stages/swept/swept_contacts.py``).
     ccd: bool = True
+    # With ccd: a particle an impact sends out of the region its broadphase
+    # query covered (its mid-step position, radius |v| dt / 2) is queried
+    # again for the rest of its path, so no contact is found late (as an
+    # overlap at the next step); costs about 30 % more on a dense gas.
     requery: bool = False
+    # How contacts at the same instant sharing a particle are solved.
+    # ``sequential``: one after another (colour batches; with ccd in
+    # time-of-impact order), which keeps chains exact (Newton's cradle ends
+    # at (0, 0, 0, 0, v0); three balls [1, 0, -1] end at [-1, 0, 1]).
+    # ``batched``: every such contact gets its impulse from the same
+    # velocities at once (Jacobi, shared 1/k by a particle in k contacts,
+    # so it never adds energy): independent of the order and identical to
+    # ``sequential`` when no particle is in two simultaneous contacts, but a
+    # particle struck from two sides at once loses energy (three balls
+    # [1, 0, -1] end at [0, 0, 0]). No preset uses it.
     ordering: str = 'sequential'
+    # Sweeps of the contact solver per (sub)step; with ccd the rounds of
+    # time-of-impact events per step (a chain of k touching balls needs k - 1).
     iterations: int = 32
+    # Event mode: t_c of the TC model, s. An impact within t_c of either
+    # particle's previous impact is treated as elastic, so inelastic collapse
+    # (infinitely many impacts in finite time when e < 1) cannot stall the
+    # event loop; under gravity such an impact means a particle coming to
+    # rest and the step goes to the step solver (see ``event_budget``).
     collapse_time: float = 1e-5
+    # Event mode: events (impacts, cell crossings) a step may take per
+    # particle (at least MIN_EVENT_BUDGET in all). A step that needs more, or
+    # meets what it cannot do exactly under gravity (an impact onto particles
+    # resting on others, a collapsing bounce), is rolled back and solved by
+    # the EVENT_FALLBACK step solver (counted as ``fallback_steps``).
     event_budget: int = 10
-    # Seconds below the sleep speed before an island sleeps; None: never.
+    # Step mode under gravity: seconds an island (particles connected by
+    # contacts; walls and static particles do not connect) must stay below
+    # the sleep speed 2 |g| dt, in speed and in spin times radius, before it
+    # falls asleep (``stages/sleeping/sleep.py``). A sleeping particle is
+    # static inside a step until an awake particle comes within reach of its
+    # island or a command touches it; then the whole island wakes. Falling
+    # asleep zeroes velocity and spin, booked as ``sleep`` energy. None
+    # (``null``/``false``): never sleep, the pipeline of a scene without it.
     sleep_time: Optional[float] = 0.5
 
 

@@ -25,8 +25,8 @@ brings the contact's default: the scene's value for particle-particle
 contacts, the walls' ``restitution`` (or the scene's ``friction``) at a
 wall. So two particles of one material keep its value, a particle with
 0 makes every contact of its own 0, and nothing changes for particles
-that carry no value of their own. The rule itself lives in
-``contact_law.combine``, with the rest of the one contact law.
+that carry no value of their own. The rule itself is
+``law/primitives.combined_coefficient``, with the rest of the contact law.
 """
 
 from __future__ import annotations

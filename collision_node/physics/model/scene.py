@@ -20,7 +20,7 @@ from .effects import Effects, check_particles_for_effects, parse_effects
 from .generate import generate_state, parse_generate
 from .particles import PARTICLE_KEYS, build_state, parse_particle
 from .state import ParticleState
-from .guard import GuardedLoader, parse_text, read_text_file
+from .guard import parse_text, read_text_file
 from .validation import SceneError, fail, number, quote, reject_unknown_keys, require_mapping
 
 SCENE_KEYS = ('name', 'dimensions', 'dt', 'duration', 'accuracy', 'effects', 'particles',
@@ -40,15 +40,6 @@ MAX_NAME = 100
 # at about 200 bytes of state and step buffers each, 10^7 is 2 GB, and a
 # 1 MiB scene of generate entries could otherwise ask for 10^11.
 MAX_SCENE_PARTICLES = 10_000_000
-
-
-# The loader moved to the guard (libyaml, bounded); the old names still work.
-SceneLoader = GuardedLoader
-
-
-def load_yaml(text: str, source: str = 'text') -> Any:
-    """Parse YAML (or JSON) text through the guard (size, depth, aliases)."""
-    return parse_text(text, source)
 
 
 @dataclass(frozen=True)

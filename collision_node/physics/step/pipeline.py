@@ -8,6 +8,7 @@ the framework, the stages and the plan form no import circle.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields, replace
+from time import perf_counter
 from typing import Optional
 
 import numpy as np
@@ -157,6 +158,9 @@ class Pipeline:
         """Keep the stages in the order they will run, and why they were chosen."""
         self.stages = stages
         self.note = note
+        # Wall seconds each stage has run, by name in run order (the step's
+        # profile, see ``timing``): two perf_counter calls per stage and step.
+        self.seconds: dict[str, float] = dict.fromkeys(self.names, 0.0)
 
     @property
     def names(self) -> list[str]:
@@ -164,9 +168,20 @@ class Pipeline:
         return [stage.name for stage in self.stages]
 
     def run(self, ctx: StepContext) -> None:
-        """Run every stage in order on one step context."""
+        """Run every stage in order on one step context, timing each."""
         for stage in self.stages:
-            stage.run(ctx)
+            self.run_stage(stage, ctx)
+
+    def run_stage(self, stage: Stage, ctx: StepContext) -> None:
+        """Run one stage on ``ctx`` and add its wall time to its total in ``seconds``."""
+        start = perf_counter()
+        stage.run(ctx)
+        elapsed = perf_counter() - start
+        self.seconds[stage.name] = self.seconds.get(stage.name, 0.0) + elapsed
+
+    def frame(self, before: Stage, after: Stage) -> None:
+        """Time ``before`` and ``after``, stages a subclass runs around the list, in place."""
+        self.seconds = {before.name: 0.0, **self.seconds, after.name: 0.0}
 
     def explain(self) -> str:
         """Return the pipeline as numbered lines, one per stage."""

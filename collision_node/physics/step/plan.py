@@ -3,7 +3,7 @@
 A pipeline is built when a world is created (and again on reset), so an
 effect the scene does not declare is simply not in the list and costs
 nothing. This module imports the stages; they import only the framework
-in ``step.py``.
+in ``pipeline.py``, so there is no import circle.
 """
 
 from __future__ import annotations

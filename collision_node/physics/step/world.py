@@ -7,6 +7,7 @@ scene, so the node, the runner and the benchmarks drive it alike.
 
 from __future__ import annotations
 
+from time import perf_counter
 from typing import Optional
 
 import numpy as np
@@ -20,6 +21,7 @@ from .plan import build_pipeline
 from ..stages.sleeping.sleep import asleep_count, sleepers_touching, wake_islands
 from .pipeline import StepContext, StepStats
 from .step_kernels import all_finite
+from .timing import StepProfile, build_profile
 from ..model.scene import Scene, parse_spawn
 from ..model.state import ParticleState
 from ..model.validation import SceneError, fail
@@ -57,6 +59,11 @@ class World:
         self.steps = 0
         self.stats = StepStats()
         self.pipeline = build_pipeline(self.scene.effects, self.scene.accuracy)
+        # The profile's clock: wall seconds of the steps timed since reset,
+        # their count, and (wall, stage totals) after the first of them.
+        self.step_seconds = 0.0
+        self.timed_steps = 0
+        self._first_step: Optional[tuple[float, dict[str, float]]] = None
         # Potential energy is measured from the grid point nearest the scene's
         # initial centre of mass (the origin for a scene near it; see
         # ``energy``), so it keeps its digits however far from the origin.
@@ -98,6 +105,7 @@ class World:
         sub_dt = scene.dt / substeps
         run = self.pipeline.run
         for _ in range(count):
+            begin = perf_counter()
             start = self.time
             for k in range(substeps):
                 run(StepContext(self.state, sub_dt, scene.dimensions, scene.effects,
@@ -105,6 +113,19 @@ class World:
                                 impacts=self.impact_log))
             self.steps += 1
             self._check_finite()
+            self.step_seconds += perf_counter() - begin
+            self.timed_steps += 1
+            if self._first_step is None:
+                self._first_step = (self.step_seconds, dict(self.pipeline.seconds))
+
+    def profile(self) -> StepProfile:
+        """Return the wall time per stage of the steps since reset (see ``timing``).
+
+        The first step, which loads the compiled code, is reported apart;
+        ms per step and shares are over the steps after it.
+        """
+        return build_profile(self.pipeline.seconds, self.step_seconds, self.timed_steps,
+                             self._first_step)
 
     def record_impacts(self, enabled: bool) -> None:
         """Start (keeping nothing from before) or stop recording the impacts resolved."""

@@ -248,13 +248,14 @@ class SleepingPipeline(Pipeline):
         self.shared = _Shared()
         self.wake = WakeStage(self.shared, gravity)
         self.sleep = SleepStage(self.shared, gravity, sleep_time)
+        self.frame(self.wake, self.sleep)
 
     def run(self, ctx: StepContext) -> None:
         """Run every stage, or only the two sleep stages when every particle sleeps."""
-        self.wake.run(ctx)
+        self.run_stage(self.wake, ctx)
         if self.shared.anyone_awake:
             super().run(ctx)
-        self.sleep.run(ctx)
+        self.run_stage(self.sleep, ctx)
 
     def explain(self) -> str:
         """Return the numbered stages, with ``wake`` before and ``sleep`` after them.
