@@ -10,7 +10,9 @@ and the JSON of the state reached (``"interrupted": true``) are still
 written, and the exit code is 130. A world too large for the machine's
 memory (``MemoryError`` while loading or stepping) is one line and exit 2.
 ``--profile`` adds the wall time per stage (``World.profile``) to the
-output and the JSON.
+output and the JSON. ``--compare-presets`` runs the scene under every
+preset it accepts instead and prints one table of their costs and their
+differences from ``exact`` (``collision_node.preset_compare``).
 """
 
 from __future__ import annotations
@@ -80,6 +82,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument('--profile', action='store_true',
                         help='print the wall time per stage (ms per step and share; the '
                              'first step, which loads the compiled code, apart)')
+    parser.add_argument('--compare-presets', action='store_true',
+                        help='run the scene under every preset it accepts for its duration '
+                             '(or --steps/--duration) and print one table: cost per '
+                             'simulated second and the difference from exact (or accurate '
+                             'where exact does not apply) at the end')
     parser.add_argument('--accuracy', help='preset (fast, balanced, accurate, exact) or a '
                         'YAML/JSON mapping such as "{preset: fast, substeps: 2}"; '
                         'overrides the scene\'s accuracy')
@@ -248,6 +255,8 @@ def _main(argv: Optional[Sequence[str]]) -> int:
         if args.duration is not None and not (math.isfinite(args.duration)
                                               and args.duration >= 0):
             raise UsageError(f'--duration must be a finite number >= 0, got {args.duration}')
+        if args.compare_presets:
+            check_compare(args)
         if args.out is not None:
             check_out(args.out)
         check_pictures(args)
@@ -271,6 +280,8 @@ def _main(argv: Optional[Sequence[str]]) -> int:
     if args.explain:
         print(world.explain())
         return 0
+    if args.compare_presets:
+        return run_comparison(args, scene, steps)
     start = {'kinetic': world.kinetic_energy(), 'momentum': world.momentum(),
              'energy': world.energy()}
     recorder = None
@@ -315,6 +326,38 @@ def _main(argv: Optional[Sequence[str]]) -> int:
         if not write_pictures(args, world, recorder):
             return EXIT_BAD_INPUT
         return EXIT_INTERRUPTED if stop.signal is not None else 0
+
+
+def check_compare(args: argparse.Namespace) -> None:
+    """Refuse options ``--compare-presets`` cannot honour (it runs every preset)."""
+    for flag, value in (('--accuracy', args.accuracy), ('--snapshot', args.snapshot),
+                        ('--energy-plot', args.energy_plot), ('--explain', args.explain),
+                        ('--profile', args.profile)):
+        if value not in (None, False):
+            raise UsageError(f'--compare-presets runs every preset; {flag} cannot be '
+                             'combined with it')
+
+
+def run_comparison(args: argparse.Namespace, scene: Any, steps: int) -> int:
+    """Run ``--compare-presets``: print the table, write ``--out``; return the exit code."""
+    from .preset_compare import compare_presets, json_record, table
+    with _StopRequest() as stop:
+        try:
+            result = compare_presets(scene, steps, stop)
+        except NonFiniteStateError as error:
+            print(f'simulate: error: {scene.name}: {error}', file=sys.stderr)
+            return 1
+        if not args.quiet:
+            print(table(result))
+        sys.stdout.flush()
+        if args.out is not None:
+            try:
+                with open(args.out, 'w', encoding='utf-8') as handle:
+                    json.dump(json_record(result), handle, indent=1)
+            except OSError as error:
+                print(f'simulate: error: --out {args.out}: {error.strerror}', file=sys.stderr)
+                return EXIT_BAD_INPUT
+    return EXIT_INTERRUPTED if result['interrupted'] else 0
 
 
 def write_pictures(args: argparse.Namespace, world: World, recorder: Any) -> bool:
