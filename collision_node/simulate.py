@@ -14,6 +14,9 @@ output and the JSON. ``--record PATH`` also writes the run as a rosbag2 bag
 (MCAP) of what the node would publish, stamped with simulated time
 (:mod:`collision_node.recording`; it needs the ROS 2 message packages,
 imported only then).
+output and the JSON. ``--compare-presets`` runs the scene under every
+preset it accepts instead and prints one table of their costs and their
+differences from ``exact`` (``collision_node.preset_compare``).
 """
 
 from __future__ import annotations
@@ -88,6 +91,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument('--record-rate', type=float, metavar='HZ',
                         help='frames per simulated second in the bag (default: 30, the '
                         "node's publish_rate; at most one per step)")
+    parser.add_argument('--compare-presets', action='store_true',
+                        help='run the scene under every preset it accepts for its duration '
+                             '(or --steps/--duration) and print one table: cost per '
+                             'simulated second and the difference from exact (or accurate '
+                             'where exact does not apply) at the end')
     parser.add_argument('--accuracy', help='preset (fast, balanced, accurate, exact) or a '
                         'YAML/JSON mapping such as "{preset: fast, substeps: 2}"; '
                         'overrides the scene\'s accuracy')
@@ -302,6 +310,8 @@ def _main(argv: Optional[Sequence[str]]) -> int:
         if args.duration is not None and not (math.isfinite(args.duration)
                                               and args.duration >= 0):
             raise UsageError(f'--duration must be a finite number >= 0, got {args.duration}')
+        if args.compare_presets:
+            check_compare(args)
         if args.out is not None:
             check_out(args.out)
         check_pictures(args)
@@ -326,6 +336,8 @@ def _main(argv: Optional[Sequence[str]]) -> int:
     if args.explain:
         print(world.explain())
         return 0
+    if args.compare_presets:
+        return run_comparison(args, scene, steps)
     try:
         recording = open_recording(args, world)
     except UsageError as error:
@@ -387,6 +399,38 @@ def _main(argv: Optional[Sequence[str]]) -> int:
         if not pictures_written or record_error is not None:
             return EXIT_BAD_INPUT
         return EXIT_INTERRUPTED if stop.signal is not None else 0
+
+
+def check_compare(args: argparse.Namespace) -> None:
+    """Refuse options ``--compare-presets`` cannot honour (it runs every preset)."""
+    for flag, value in (('--accuracy', args.accuracy), ('--snapshot', args.snapshot),
+                        ('--energy-plot', args.energy_plot), ('--explain', args.explain),
+                        ('--profile', args.profile)):
+        if value not in (None, False):
+            raise UsageError(f'--compare-presets runs every preset; {flag} cannot be '
+                             'combined with it')
+
+
+def run_comparison(args: argparse.Namespace, scene: Any, steps: int) -> int:
+    """Run ``--compare-presets``: print the table, write ``--out``; return the exit code."""
+    from .preset_compare import compare_presets, json_record, table
+    with _StopRequest() as stop:
+        try:
+            result = compare_presets(scene, steps, stop)
+        except NonFiniteStateError as error:
+            print(f'simulate: error: {scene.name}: {error}', file=sys.stderr)
+            return 1
+        if not args.quiet:
+            print(table(result))
+        sys.stdout.flush()
+        if args.out is not None:
+            try:
+                with open(args.out, 'w', encoding='utf-8') as handle:
+                    json.dump(json_record(result), handle, indent=1)
+            except OSError as error:
+                print(f'simulate: error: --out {args.out}: {error.strerror}', file=sys.stderr)
+                return EXIT_BAD_INPUT
+    return EXIT_INTERRUPTED if result['interrupted'] else 0
 
 
 def write_pictures(args: argparse.Namespace, world: World, recorder: Any) -> bool:

@@ -206,3 +206,22 @@ def test_no_physics_constant_is_defined_in_two_modules():
             owners.setdefault(name, []).append(str(path.relative_to(ROOT)))
     assert 'STRIKE_FACTOR' in owners and 'SPIN_FACTOR' in owners
     assert {name: paths for name, paths in owners.items() if len(paths) > 1} == {}
+
+
+def parameter_count(function: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    """Return how many parameters a function takes (self and cls not counted)."""
+    args = function.args
+    count = len(args.posonlyargs) + len(args.args) + len(args.kwonlyargs)
+    count += (args.vararg is not None) + (args.kwarg is not None)
+    return count - (1 if args.args and args.args[0].arg in ('self', 'cls') else 0)
+
+
+def test_no_function_takes_more_than_twelve_parameters():
+    crowded = []
+    for path in PACKAGE.rglob('*.py'):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) \
+                    and parameter_count(node) > 12:
+                crowded.append(f'{path.relative_to(ROOT)}:{node.name}')
+    assert crowded == []
+    assert parameter_count(ast.parse('def f(self, a, *b, c, **d): pass').body[0]) == 4

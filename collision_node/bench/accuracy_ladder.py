@@ -1,10 +1,13 @@
 """Accuracy benchmark: what each preset buys and what it costs in time.
 
-``python -m collision_node.bench.accuracy_ladder [--quick] [--out DIR]`` (also
-``python -m collision_node.bench accuracy`` once registered) runs a fixed
-set of scenes under every preset and a dt sweep, with a progress bar, and
-writes ``results.md``, ``results.csv``, ``results.json`` and
-``error_vs_cost.png`` to ``DIR`` (default ``docs/accuracy``).
+``python -m collision_node.bench accuracy [--quick] [--out DIR]`` runs a
+fixed set of scenes under every preset and a dt sweep, and the cost-growth
+runs (``cost_growth``), with a progress bar, and writes ``results.md``,
+``results.csv``, ``results.json`` and three figures (``accuracy_figures``):
+``error_vs_cost.png``, ``where_time_goes.png`` and ``cost_growth.png`` to
+``DIR`` (default ``docs/accuracy``), and the decision table into
+``docs/accuracy.md`` (``--doc``). ``--from-results`` redraws the figures
+and the table from an existing ``results.json`` without running anything.
 
 Per run: wall and CPU seconds per simulated second (only the
 ``World.step`` calls are timed; the ratio to ``fast`` uses CPU time, which
@@ -155,7 +158,7 @@ def cost_scene(quick: bool) -> dict:
 # -- runs --------------------------------------------------------------------
 
 def run_case(name: str, mapping: dict, accuracy: Any, dt: float, check: bool = True) -> dict:
-    """Run one scene under one accuracy and dt; return its measurements."""
+    """Run one scene under one accuracy and dt; return its measurements and step profile."""
     scene = parse_scene(dict(mapping, dt=dt, accuracy=accuracy), f'bench:{name}')
     world = World(scene)
     steps = max(1, int(round(scene.duration / dt)))  # durations are multiples of every dt
@@ -180,10 +183,13 @@ def run_case(name: str, mapping: dict, accuracy: Any, dt: float, check: bool = T
     energy1 = world.kinetic_energy()
     s = world.state
     measures = gravity_measures(name, world, heights)
+    profile = world.profile()
     return {
         'scene': name,
         'accuracy': accuracy if isinstance(accuracy, str) else json.dumps(accuracy),
         'dt': dt,
+        # The scene's own dt (the dt sweep multiplies it).
+        'scene_dt': mapping['dt'],
         'particles': len(s),
         'steps': steps,
         'simulated_s': steps * dt,
@@ -204,6 +210,9 @@ def run_case(name: str, mapping: dict, accuracy: Any, dt: float, check: bool = T
         'final_position': s.position.tolist(),
         'final_velocity': s.velocity.tolist(),
         'radius_min': float(s.radius.min()),
+        # Steady wall ms per step of each stage (the first step apart, World.profile).
+        'profile': {'ms_per_step': profile.ms_per_step, 'first_step_ms': profile.first_step_ms,
+                    'stages': [[stage.name, stage.ms_per_step] for stage in profile.stages]},
         **measures,
     }
 
@@ -329,8 +338,9 @@ def _cell(value: Any) -> str:
     return str(value)
 
 
-def write_outputs(results: list[dict], out: Path, header: str) -> None:
-    """Write results.md, results.csv, results.json and error_vs_cost.png to ``out``."""
+def write_outputs(results: list[dict], growth: list[dict], out: Path, header: str,
+                  doc: Optional[Path]) -> None:
+    """Write results.md, .csv, .json and the three figures to ``out``; the table to ``doc``."""
     out.mkdir(parents=True, exist_ok=True)
     keys = [k for k, _ in COLUMNS]
     with open(out / 'results.csv', 'w', newline='', encoding='utf-8') as handle:
@@ -340,101 +350,46 @@ def write_outputs(results: list[dict], out: Path, header: str) -> None:
             writer.writerow([r.get(k) for k in keys])
     slim = [{k: v for k, v in r.items() if k not in ('final_position', 'final_velocity')}
             for r in results]
-    (out / 'results.json').write_text(json.dumps({'header': header, 'runs': slim}, indent=1),
-                                      encoding='utf-8')
+    (out / 'results.json').write_text(
+        json.dumps({'header': header, 'runs': slim, 'growth': growth}, indent=1),
+        encoding='utf-8')
     lines = [header, '', '| ' + ' | '.join(t for _, t in COLUMNS) + ' |',
              '|' + '---|' * len(COLUMNS)]
     for r in results:
         lines.append('| ' + ' | '.join(_cell(r.get(k)) for k in keys) + ' |')
+    lines += ['', 'Cost growth (ns per particle-step, steady steps):', '',
+              '| scene | preset | N | ms per step | ns per particle-step |',
+              '|---|---|---:|---:|---:|']
+    for g in growth:
+        if 'skipped' in g:
+            lines.append(f'| {g["scene"]} | {g["preset"]} | {g["count"]} | skipped: '
+                         f'{g["skipped"]} | - |')
+        else:
+            lines.append(f'| {g["scene"]} | {g["preset"]} | {g["count"]} | '
+                         f'{g["ms_per_step"]:.4g} | {g["ns_per_particle_step"]:.4g} |')
     (out / 'results.md').write_text('\n'.join(lines) + '\n', encoding='utf-8')
-    plot(results, out / 'error_vs_cost.png')
+    draw(slim, growth, out, header, doc)
 
 
-def pareto(points: list[tuple[float, float]]) -> list[int]:
-    """Return indices of the points no other point beats in both cost and error."""
-    order = sorted(range(len(points)), key=lambda k: (points[k][0], points[k][1]))
-    front, best = [], math.inf
-    for k in order:
-        if points[k][1] < best:
-            front.append(k)
-            best = points[k][1]
-    return front
-
-
-def _plot_value(r: dict, key: str) -> Optional[float]:
-    """Return the error a plot row shows for run ``r`` (None: not measured)."""
-    if key == 'missed':
-        if r['missed_pairs'] is None:
-            return None
-        return (r['missed_pairs'] or 0) + (r['missed_walls'] or 0)
-    if key == 'gravity':
-        return r['apex_error'] if r.get('apex_error') is not None else r.get('pile_overlap_r')
-    return r.get(key)
-
-
-def plot(results: list[dict], path: Path) -> None:
-    """Log-log error against time cost, one panel per scene and error, Pareto front marked."""
-    import matplotlib
-    matplotlib.use('Agg')
+def draw(results: list[dict], growth: list[dict], out: Path, header: str,
+         doc: Optional[Path]) -> None:
+    """Draw the three figures into ``out`` and write the decision table into ``doc``."""
     import matplotlib.pyplot as plt
-    from matplotlib.ticker import NullFormatter
 
-    names = [n for n in dict.fromkeys(r['scene'] for r in results) if n != 'gas_10k_cost']
-    floor = 1e-17
-    errors = [('position_error', 'position error vs exact (m)'),
-              ('energy_rel_error', 'relative energy error'),
-              ('missed', 'missed collisions (pairs + walls)'),
-              ('gravity', 'ball: apex rel. error;\npile: deepest overlap / r')]
-    colours = {'fast': 'tab:red', 'balanced': 'tab:blue', 'accurate': 'tab:green',
-               'exact': 'black'}
-    fig, axes = plt.subplots(len(errors), len(names), figsize=(3.4 * len(names), 12.0),
-                             squeeze=False)
-    for col, name in enumerate(names):
-        runs = [r for r in results if r['scene'] == name]
-        for row, (key, label) in enumerate(errors):
-            ax = axes[row][col]
-            values = [_plot_value(r, key) for r in runs]
-            shown = [(r, v) for r, v in zip(runs, values) if v is not None]
-            if row == 0:
-                ax.set_title(name, fontsize=9)
-            if col == 0:
-                ax.set_ylabel(label, fontsize=8)
-            if not shown:
-                # No such measure for this scene (no exact reference, not a gravity scene).
-                ax.text(0.5, 0.5, 'n/a', ha='center', va='center', transform=ax.transAxes)
-                ax.set_xticks([])
-                ax.set_yticks([])
-                continue
-            runs_shown = [r for r, _ in shown]
-            low = 0.5 if key == 'missed' else floor
-            pts = [(r['wall_s_per_sim_s'], max(value, low)) for r, value in shown]
-            for r, (x, y) in zip(runs_shown, pts):
-                preset = r['accuracy'] if r['accuracy'] in colours else 'fast'
-                marker = 'o' if r['accuracy'] in colours else 'x'
-                ax.scatter(x, y, c=colours[preset], marker=marker, s=22, zorder=3)
-                base = scenes_dt(results, name)
-                tag = r['accuracy'] if r['accuracy'] in colours else 'batched'
-                if r['dt'] != base:
-                    tag += f' dt x{r["dt"] / base:g}'
-                ax.annotate(tag, (x, y), fontsize=5, xytext=(2, 2), textcoords='offset points')
-            front = pareto(pts)
-            fx, fy = zip(*[pts[k] for k in front])
-            ax.plot(fx, fy, '--', c='grey', lw=1, zorder=2, label='Pareto front')
-            ax.set_xscale('log')
-            ax.set_yscale('log')
-            ax.grid(True, which='major', lw=0.3)
-            # A narrow log range labels its minor ticks, which then overlap.
-            ax.xaxis.set_minor_formatter(NullFormatter())
-            ax.yaxis.set_minor_formatter(NullFormatter())
-            if row == len(errors) - 1:
-                ax.set_xlabel('wall s per simulated s', fontsize=8)
-            ax.tick_params(labelsize=6)
-    axes[0][0].legend(fontsize=6, loc='best')
-    fig.suptitle('Accuracy vs time cost (o: presets, x: fast with batched ordering; '
-                 f'errors of 0 drawn at {floor:g}, 0 missed at 0.5)', fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
+    from . import accuracy_figures as figures
+    from .cost_growth import measured
+    made = [('error_vs_cost.png', figures.error_vs_cost_figure(results))]
+    if any(r.get('profile') for r in results):
+        made.append(('where_time_goes.png', figures.where_time_goes_figure(results)))
+    if measured(growth):
+        made.append(('cost_growth.png', figures.cost_growth_figure(measured(growth))))
+    for name, fig in made:
+        fig.savefig(out / name, dpi=110)
+        plt.close(fig)
+    if doc is not None:
+        table = f'{header}\n\n{figures.decision_table(results)}'
+        text = doc.read_text(encoding='utf-8')
+        doc.write_text(figures.replace_table(text, table), encoding='utf-8')
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -442,41 +397,67 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--quick', action='store_true',
                         help='smaller gases, shorter runs (about 5 minutes, most of it the pile)')
     parser.add_argument('--out', default='docs/accuracy',
-                        help='directory for results.md/.csv/.json and error_vs_cost.png')
+                        help='directory for results.md/.csv/.json and the three figures')
+    parser.add_argument('--doc', default='docs/accuracy.md',
+                        help='page whose decision table is rewritten (between its markers); '
+                             '"" leaves every page alone')
     parser.add_argument('--only', help='comma-separated scene names to run')
+    parser.add_argument('--growth-counts', type=int, nargs='+', metavar='N',
+                        help='particle counts of the cost-growth runs (default 1,000 to '
+                             '1,000,000; --quick: 200 and 1,000); 0 skips them')
+    parser.add_argument('--from-results', action='store_true',
+                        help='run nothing: redraw the figures and the table from '
+                             'OUT/results.json')
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the benchmark; return the exit code."""
+    """Run the benchmark (or redraw from its results); return the exit code."""
     from tqdm import tqdm
 
+    from .cost_growth import COUNTS, QUICK_COUNTS, run_growth
+    out = Path(args.out)
+    doc = Path(args.doc) if args.doc else None
+    if args.from_results:
+        saved = json.loads((out / 'results.json').read_text(encoding='utf-8'))
+        draw(saved['runs'], saved.get('growth', []), out, saved['header'], doc)
+        print(f'redrew the figures in {out} from {out / "results.json"}'
+              + (f' and the decision table in {doc}' if doc else ''))
+        return 0
     runs = plan(args.quick)
     if args.only:
         wanted = set(args.only.split(','))
         runs = [r for r in runs if r[0] in wanted]
+    counts = args.growth_counts or (QUICK_COUNTS if args.quick else COUNTS)
+    counts = [n for n in counts if n > 0]
     load = os.getloadavg()
     results = []
     start = time.perf_counter()
-    for name, mapping, accuracy, dt, check in tqdm(runs, unit='run', file=sys.stderr):
+    bar = tqdm(runs, unit='run', file=sys.stderr)
+    for name, mapping, accuracy, dt, check in bar:
         results.append(run_case(name, mapping, accuracy, dt, check))
     results = merge_repeats(results)
     compare(results)
-    command = 'python -m collision_node.bench.accuracy_ladder' + (' --quick' if args.quick else '')
+    growth = run_growth(counts, progress=lambda text: bar.write(text, file=sys.stderr))
+    command = 'python -m collision_node.bench accuracy' + (' --quick' if args.quick else '')
     if args.only:
         command += f' --only {args.only}'
-    header = (f'Command: `{command}`; {len(runs)} runs in '
+    if args.growth_counts:
+        command += ' --growth-counts ' + ' '.join(map(str, args.growth_counts))
+    header = (f'Command: `{command}`; {len(runs)} runs and {len(growth)} cost-growth runs in '
               f'{time.perf_counter() - start:.0f} s; load average before: '
               f'{load[0]:.2f} {load[1]:.2f} {load[2]:.2f} on {os.cpu_count()} CPUs; '
               f'{time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}.')
-    write_outputs(results, Path(args.out), header)
+    write_outputs(results, growth, out, header, doc)
     print(header)
-    print(f'wrote {args.out}/results.md, results.csv, results.json, error_vs_cost.png')
+    print(f'wrote {out}/results.md, results.csv, results.json, error_vs_cost.png, '
+          'where_time_goes.png, cost_growth.png'
+          + (f' and the decision table in {doc}' if doc else ''))
     return 0
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Parse the command line and run the benchmark."""
-    parser = argparse.ArgumentParser(prog='python -m collision_node.bench.accuracy_ladder',
+    parser = argparse.ArgumentParser(prog='python -m collision_node.bench accuracy',
                                      description=(__doc__ or '').split('\n')[0])
     add_arguments(parser)
     return run(parser.parse_args(argv))
