@@ -19,7 +19,7 @@ import pytest
 import yaml
 
 from collision_node import World, parse_scene
-from collision_node.physics import accuracy as acc
+from collision_node.physics.model import accuracy as acc
 from collision_node.physics.model.world_commands import spawn_request
 from collision_node.physics.model.effects import Effects
 from collision_node.physics.model.generate import MAX_GENERATED, MAX_SEED

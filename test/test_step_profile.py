@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from collision_node import StepProfile, World, parse_scene, scenarios
+from collision_node import StepProfile, World, load_scene, parse_scene, scenarios
 from collision_node.physics.step.timing import OUTSIDE
 from collision_node.simulate import main as simulate_main
 
@@ -87,8 +87,7 @@ def test_simulate_profile_prints_every_stage_and_writes_it_to_the_json(tmp_path,
     printed = capsys.readouterr().out
     rows = [line.split('|')[1].strip() for line in printed.splitlines()
             if line.startswith('| ') and not line.startswith('| stage')]
-    world = World(parse_scene(dict(scenarios.cradle(5, 0.0625, 0.5, 1.0, -0.25), dt=0.001),
-                              'cradle'))
+    world = World(load_scene('cradle'))
     assert rows == explained_names(world) + [OUTSIDE, 'step']
     assert 'steps timed: 4' in printed
     record = json.loads(out.read_text())['profile']
