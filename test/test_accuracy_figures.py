@@ -20,6 +20,9 @@ import pytest
 
 from collision_node.bench import accuracy_figures as figures
 from collision_node.bench import cost_growth
+from collision_node.physics.model.accuracy import PRESETS, check_event_mode
+from collision_node.physics.model.scene import load_scene
+from collision_node.physics.model.validation import SceneError
 from collision_node.simulate import main as simulate
 
 matplotlib.use('Agg')
@@ -170,7 +173,7 @@ def test_problems_name_tunnelling_overlap_drift_and_order():
     run = {'missed_pairs': 3, 'missed_walls': 1, 'max_penetration': 0.002, 'radius_min': 0.01,
            'energy_rel_error': 0.03, 'position_error': 0.001, 'pile_overlap_r': None}
     found = figures.problems(run, 'chains and cradles')
-    names = [p.split(' (')[0] for p in found]
+    names = [name for name, _, _ in found]
     assert names == ['tunnelling', 'overlap', 'energy drift', 'impact time/order']
     clean = dict(run, missed_pairs=0, missed_walls=0, max_penetration=0.0,
                  energy_rel_error=1e-15, position_error=1e-12)
@@ -184,17 +187,23 @@ def test_compare_presets_runs_every_shipped_scene(scene, capsys):
     rows = [re.split(r'\s*\|\s*', line.strip('| ')) for line in lines
             if line.startswith('| ') and not line.startswith('| preset')]
     names = [row[0].split(' ')[0] for row in rows]
-    friction = 'friction' in (ROOT / 'scenes' / f'{scene}.yaml').read_text(encoding='utf-8')
-    reference = 'accurate' if friction else 'exact'
+    effects = load_scene(scene).effects
+    try:
+        check_event_mode(PRESETS['exact'], effects, 'x')
+        refused = False
+    except SceneError:
+        refused = True
+    reference = 'accurate' if refused else 'exact'
     assert f'compared with `{reference}`' in lines[0]
-    assert names == (['fast', 'balanced', 'accurate'] + ([] if friction else ['exact']))
+    assert names == (['fast', 'balanced', 'accurate'] + ([] if refused else ['exact']))
     for row in rows:
         assert float(row[1]) > 0                          # cost per simulated second
         if row[0] == f'{reference} (reference)':
             assert row[2:5] == ['0', '0', '0']
         assert math.isfinite(float(row[2])) and float(row[2]) >= 0
-    if friction:
-        assert any(line.startswith('exact: not run (mode event') for line in lines)
+    if refused:
+        assert any(line.startswith('exact: not run (mode event (preset exact) cannot simulate')
+                   for line in lines)
 
 
 def test_compare_presets_shows_fast_tunnelling_through_the_bullets_target(tmp_path, capsys):

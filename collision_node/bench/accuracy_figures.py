@@ -40,8 +40,10 @@ ENERGY_DRIFT = 1e-9
 # Deepest overlap during a run over the smallest radius beyond which it is overlap.
 OVERLAP_R = 1e-3
 # Final position difference from exact over r beyond which impacts were taken
-# at the wrong time or in the wrong order (isolated impacts, chains).
-ORDER_R = 1e-6
+# at the wrong time or in the wrong order (isolated impacts, chains). Below
+# it lies round-off that a chaotic scene amplifies (the billiards break ends
+# some 1e-6 r from exact under every ccd preset).
+ORDER_R = 1e-4
 
 # Per kind: y-axis label, the per-run error function, and the tolerance a
 # preset must meet to be recommended.
@@ -63,8 +65,9 @@ def _overlap_during(r: dict) -> Optional[float]:
 
 
 MEASURES: dict[str, tuple[str, MeasureFn, float]] = {
-    'isolated impacts': ('position error vs exact / r', _position_over_r, ORDER_R),
-    'chains and cradles': ('position error vs exact / r', _position_over_r, ORDER_R),
+    'isolated impacts': ('position error vs exact at the end / r', _position_over_r, ORDER_R),
+    'chains and cradles': ('position error vs exact at the end / r', _position_over_r,
+                           ORDER_R),
     # The gases are chaotic: any change of impact order diverges from the
     # reference by the box size, so their measure is the overlap a run allows.
     'gas': ('deepest overlap during the run / r', _overlap_during, OVERLAP_R),
@@ -96,9 +99,13 @@ def kind_summary(results: Sequence[dict]) -> dict[str, list[dict]]:
             errors = [measure(r) for r in mine]
             if not mine or any(e is None for e in errors):
                 continue
-            found: list[str] = []
+            worst: dict[str, tuple[float, str, str]] = {}
             for r in mine:
-                found += [p for p in problems(r, kind) if p not in found]
+                for name, value, text in problems(r, kind):
+                    if name not in worst or value > worst[name][0]:
+                        worst[name] = (value, text, r['scene'])
+            found = [f'{name} ({text}, {scene})' if len(mine) > 1 else f'{name} ({text})'
+                     for name, (_, text, scene) in worst.items()]
             rows.append({'preset': preset, 'error': max(errors),
                          'cost': sum(r['wall_s_per_sim_s'] for r in mine),
                          'scenes': [r['scene'] for r in mine], 'problems': found,
@@ -108,20 +115,25 @@ def kind_summary(results: Sequence[dict]) -> dict[str, list[dict]]:
     return out
 
 
-def problems(r: dict, kind: str) -> list[str]:
-    """Return what run ``r`` gets wrong: tunnelling, overlap, energy drift, impact order."""
+def problems(r: dict, kind: str) -> list[tuple[str, float, str]]:
+    """Return what run ``r`` gets wrong, as (problem, size, size as text).
+
+    The problems: tunnelling, overlap, energy drift and impact time/order
+    (thresholds :data:`OVERLAP_R`, :data:`ENERGY_DRIFT`, :data:`ORDER_R`).
+    """
     found = []
-    if (r.get('missed_pairs') or 0) + (r.get('missed_walls') or 0) > 0:
-        found.append(f'tunnelling ({r["missed_pairs"] + r["missed_walls"]} missed)')
+    missed = (r.get('missed_pairs') or 0) + (r.get('missed_walls') or 0)
+    if missed > 0:
+        found.append(('tunnelling', float(missed), f'{missed} missed'))
     overlap = r.get('pile_overlap_r') if kind == 'piles' else _overlap_during(r)
     if overlap is not None and overlap > OVERLAP_R:
-        found.append(f'overlap ({_num(overlap)} r)')
+        found.append(('overlap', overlap, f'{_num(overlap)} r'))
     if r.get('energy_rel_error') is not None and r['energy_rel_error'] > ENERGY_DRIFT:
-        found.append(f'energy drift ({_num(r["energy_rel_error"])})')
+        found.append(('energy drift', r['energy_rel_error'], _num(r['energy_rel_error'])))
     if kind in ('isolated impacts', 'chains and cradles'):
         error = _position_over_r(r)
         if error is not None and error > ORDER_R:
-            found.append(f'impact time/order ({_num(error)} r off)')
+            found.append(('impact time/order', error, f'{_num(error)} r off'))
     return found
 
 
@@ -135,6 +147,11 @@ def recommend(rows: Sequence[dict], tolerance: float) -> tuple[dict, str]:
     return best, f'none reaches {_num(tolerance)}: the least error'
 
 
+def _ran(rows: Sequence[dict]) -> list[str]:
+    """Return the scenes a kind's rows ran, in the kind's order."""
+    return list(dict.fromkeys(name for row in rows for name in row['scenes']))
+
+
 def _num(value: float) -> str:
     """Format a number as the table prints it (3 significant digits)."""
     return '0' if value == 0 else f'{value:.3g}'
@@ -146,15 +163,19 @@ def decision_table(results: Sequence[dict]) -> str:
     for kind, rows in kind_summary(results).items():
         label, _, tolerance = MEASURES[kind]
         best, why = recommend(rows, tolerance)
-        lines += [f'**{kind}** ({", ".join(KINDS[kind])}; error: {label})', '',
+        lines += [f'**{kind}** ({", ".join(_ran(rows))}; error: {label})', '',
                   '| preset | error | wall s / sim s | what it gets wrong |',
                   '|---|---:|---:|---|']
         for row in rows:
             wrong = '; '.join(row['problems']) or 'nothing measured'
             lines.append(f'| `{row["preset"]}` | {_num(row["error"])} | '
                          f'{_num(row["cost"])} | {wrong} |')
+        cheapest = min(rows, key=lambda row: row['cost'])
+        also = '' if cheapest is best else (
+            f'; the cheapest, `{cheapest["preset"]}`, costs {_num(cheapest["cost"])} '
+            f'with an error of {_num(cheapest["error"])}')
         lines += ['', f'Recommended for {kind}: `{best["preset"]}` ({why}, '
-                  f'{_num(best["cost"])} wall s per simulated s).', '']
+                  f'{_num(best["cost"])} wall s per simulated s{also}).', '']
     return '\n'.join(lines).rstrip('\n')
 
 
@@ -259,16 +280,19 @@ def error_vs_cost_figure(results: Sequence[dict]) -> Any:
         xs, ys = [p[0] for p in points], [p[1] for p in points]
         ax.set_xlim(min(xs) / 4, max(xs) * 4)
         ax.set_ylim(min(ys) / 30, max(ys) * 30)
-        ax.set_title(f'{kind}\n({", ".join(KINDS[kind])})', fontsize=9)
+        ax.set_title(f'{kind}\n({", ".join(_ran(rows))})', fontsize=9)
         ax.set_xlabel('wall s per simulated s', fontsize=8)
         ax.set_ylabel(label, fontsize=8)
         ax.grid(True, which='major', lw=0.3)
         ax.tick_params(labelsize=7)
         panels.append((ax, points, [row['preset'] for row in rows]))
-    axes[0][0].legend(fontsize=7, loc='upper right')
+    handles = [plt.Line2D([], [], ls='', marker='o', c=COLOURS[p]) for p in PRESETS]
+    handles.append(plt.Line2D([], [], ls='--', c='grey'))
+    fig.legend(handles, [*PRESETS, 'Pareto front (no preset is both cheaper and better)'],
+               loc='lower center', ncol=len(handles), fontsize=8)
     fig.suptitle('What accuracy costs, per kind of scene (each scene at its own dt; '
                  f'an error of 0 is drawn at {ZERO_FLOOR:g})', fontsize=10)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     for ax, points, names in panels:
         place_labels(ax, points, names)
     return fig
@@ -305,8 +329,9 @@ def where_time_goes_figure(results: Sequence[dict]) -> Any:
                for kind, rows in kind_summary(results).items()}
     summary = {kind: rows for kind, rows in summary.items() if rows}
     names = _stage_names([r for rows in summary.values() for row in rows for r in row['runs']])
-    cmap = plt.get_cmap('tab20')
-    colour = {name: cmap(k % 20) for k, name in enumerate(names)}
+    palette = [plt.get_cmap('tab10')(k) for k in range(10)] + \
+        [plt.get_cmap('Dark2')(k) for k in range(8)]
+    colour = {name: palette[k % len(palette)] for k, name in enumerate(names)}
     fig, axes = plt.subplots(1, len(summary), figsize=(3.3 * len(summary), 4.6),
                              squeeze=False)
     for ax, (kind, rows) in zip(axes[0], summary.items()):
@@ -318,7 +343,7 @@ def where_time_goes_figure(results: Sequence[dict]) -> Any:
                 bar.patches[0].set_gid(f'{row["preset"]}|{name}')
                 bottom += value
         ax.set_xticks(range(len(rows)), [row['preset'] for row in rows], fontsize=8)
-        ax.set_title(f'{kind}\n({", ".join(KINDS[kind])})', fontsize=9)
+        ax.set_title(f'{kind}\n({", ".join(_ran(rows))})', fontsize=9)
         ax.set_ylabel('wall s per simulated s', fontsize=8)
         ax.tick_params(axis='y', labelsize=7)
     handles = [plt.Rectangle((0, 0), 1, 1, color=colour[name]) for name in names]
