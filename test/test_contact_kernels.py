@@ -219,8 +219,10 @@ def test_first_start_says_it_compiles_and_a_cached_start_says_nothing(tmp_path):
             'took = k.prepare(lambda text: print(text, file=sys.stderr))\n'
             'print(took)\n')
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / 'numba'))
+    # The bound only guards against a hang: a cold compile of every kernel takes minutes
+    # on a busy 2-core machine (the compile time is measured by scripts/setup, not here).
     first = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True,
-                           text=True, timeout=300)
+                           text=True, timeout=1800)
     assert first.returncode == 0, first.stderr
     assert 'compiling the contact kernels' in first.stderr
     assert 'contact kernels compiled in' in first.stderr
