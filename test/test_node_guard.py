@@ -175,11 +175,13 @@ sys.exit(main(['collision_node', *sys.argv[1:]]))
 NO_MEMORY = '(MemoryError: Allocation failed (probably too large).)'
 
 
-def start_out_of_memory(name: str, args: list[str], domain_id: int) -> subprocess.Popen:
+def start_out_of_memory(name: str, args: list[str], domain_id: int,
+                        preexec=None) -> subprocess.Popen:
     """Start the node's main with the World.step above (as node_harness.start does)."""
     out, err = tempfile.TemporaryFile('w+'), tempfile.TemporaryFile('w+')
     process = subprocess.Popen([sys.executable, '-c', OUT_OF_MEMORY_NODE, *args],
-                               env=ros_env(domain_id), stdout=out, stderr=err, text=True)
+                               env=ros_env(domain_id), stdout=out, stderr=err, text=True,
+                               preexec_fn=preexec)
     process.output_files = (out, err)
     return process
 
