@@ -584,7 +584,7 @@ def _warm_start(v, ang, inv_mass, radius, pi, pj, normal, mu, impact, acc, acc_t
             w_acc_t[c, 0] = w_acc_t[c, 1] = w_acc_t[c, 2] = 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def solve_contacts(v, ang, inv_mass, radius, dynamic, pi, pj, normal, rest, mu, order,
                    w_start, w_index, w_axis, w_inward, w_rest, w_mu,
                    use_threshold, threshold, tolerance, strike, iterations, friction, planar,
@@ -834,7 +834,7 @@ def _stable_order(keys):
     return np.argsort(keys, kind='mergesort')
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def solve_step(v, ang, position, inv_mass, radius, ids, pi, pj, normal, rest_in, mu_in,
                colours, order_in, p_axis, p_plane, p_inward, p_ulps, slop, w_rest_in,
                w_mu_in, use_threshold, threshold, tolerance, strike, iterations, friction,
@@ -1013,7 +1013,7 @@ def line_of_action(ox, oy, oz, rx, ry, rz):
     return 1.0, 0.0, 0.0, 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def find_overlaps(position, velocity, radius, inv_mass, ci, cj, out_i, out_j, normal,
                   penetration):
     """Keep the candidate pairs that overlap (``narrowphase.find_contacts``); return how many.
@@ -1125,7 +1125,7 @@ def _clamp_inside(position, radius, dynamic, p_axis, p_value, p_inward):
                 position[p, axis] = plane + inward * radius[p]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def project_overlaps(position, velocity, inv_mass, radius, dynamic, pi, pj, normal0,
                      penetration0, passes, hold, walls, low, high, dimensions, p_axis, p_value,
                      p_inward):
@@ -1174,7 +1174,7 @@ def _root(parent, p):
     return p
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def pay_for_lift(position, start, velocity, inv_mass, dynamic, pi, pj, added, budget):
     """Take back what the projection's net lift adds per cluster; return J removed per particle.
 

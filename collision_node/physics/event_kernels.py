@@ -357,7 +357,7 @@ def _slope_root(ox, oy, oz, wx, wy, wz, hx, hy, hz, lo, hi):
     return hi
 
 
-@njit(cache=True, error_model='numpy')
+@njit(cache=True, nogil=True, error_model='numpy')
 def curved_delay(dx, dy, dz, ux, uy, uz, ax, ay, az, reach, horizon):
     """Delay until a pair whose accelerations differ touches, within ``horizon``; inf for none.
 
@@ -751,7 +751,7 @@ def _keeps_supports(rest, p, nx, ny, nz):
 # allocates nothing, and the counts numba keeps for every array handed to an
 # inlined helper cost atomic updates in the innermost loops (13 % of the
 # loop's time, measured with perf).
-@njit(cache=True, error_model='numpy', _nrt=False)
+@njit(cache=True, nogil=True, error_model='numpy', _nrt=False)
 def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, half_g, accel, rest,
                low, high, params, flags, cell, table, head, nxt, prv, occupancy, clock, book,
                cand_time, cand_int, heap_key, heap_int, meta, totals, losses, rec_f, rec_ij,
@@ -936,7 +936,7 @@ def run_events(end, budget, pos, vel, inv_mass, radius, own_e, gravity, half_g, 
     return DONE
 
 
-@njit(cache=True, error_model='numpy')
+@njit(cache=True, nogil=True, error_model='numpy')
 def build_events(when, pos, vel, inv_mass, radius, gravity, accel, rest, low, high, params,
                  flags, cell, table, head, nxt, prv, occupancy, clock, book, cand_time,
                  cand_int, heap_key, heap_int, meta):
@@ -959,7 +959,7 @@ def build_events(when, pos, vel, inv_mass, radius, gravity, accel, rest, low, hi
     heapify(clock, heap_key, heap_int)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def matches(state_pos, state_vel, state_inv_mass, state_radius, pos, vel, inv_mass, radius,
             perm):
     """Say whether the world's particles are still the ones the last step published."""

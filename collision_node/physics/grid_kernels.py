@@ -104,7 +104,7 @@ def _dense_bucket(cx, cy, cz, lx, ly, lz, nx, ny):
     return ((cz - lz) * ny + (cy - ly)) * nx + (cx - lx)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def build_grid(position, reach, order, class_start):
     """Build every class's grid; see ``Grid`` for the returned arrays.
 
@@ -285,7 +285,7 @@ def _grown(out, count, size):
     return grown
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def sort_pairs(a, b, count, n):
     """Return pairs (min, max) of the first ``count`` of (a, b) sorted by (i, j).
 
@@ -393,7 +393,7 @@ def _dense_grid_pairs(reach, low, high, table_start, bucket, item, item_cell, it
         size *= 4
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def grid_pairs(reach, corner, cell, class_reach, class_start, low, high, dense, table_start,
                bucket, item, item_cell, item_position):
     """Return every pair (i < j, sorted) with |p_i - p_j| <= reach_i + reach_j (and slack).
@@ -437,7 +437,7 @@ def grid_pairs(reach, corner, cell, class_reach, class_start, low, high, dense, 
     return sort_pairs(out_a, out_b, count, n)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def grid_query(position, query, query_reach, partner, class_partner, corner, cell,
                class_reach, class_start, low, high, dense, table_start, bucket, item,
                item_cell, item_position):
@@ -475,7 +475,7 @@ def partner_terms(values: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarra
     return in_order, np.maximum.reduceat(in_order, grid.class_start[:-1])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def movers(position, built, extra, half_skin):
     """Return the particles with |position - built| + extra > half_skin (ascending)."""
     n = position.shape[0]
@@ -490,7 +490,7 @@ def movers(position, built, extra, half_skin):
     return out[:count]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def merge_pairs(keys, list_i, list_j, a, b, n):
     """Return the listed pairs joined with pairs (a, b): sorted by (i, j), i != j, no repeats.
 

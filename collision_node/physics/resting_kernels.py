@@ -85,7 +85,7 @@ def _spacing(x):
     return _EPSILON * abs(x)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def collect(position, velocity, inv_mass, radius, cand_i, cand_j, low, high, dims,
             rest_speed, c_i, c_j, c_normal):
     """Write the resting contacts into (c_i, c_j, c_normal); return their count.
@@ -171,7 +171,7 @@ def _push_wall(v, inv_mass, p, axis, inward, magnitude):
     return -(magnitude * 0.5 * (before + after))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def project_velocities(velocity, inv_mass, m, c_i, c_j, c_normal, tolerance, removed, info):
     """Set every resting contact's normal speed to zero (either way); book what it removes.
 
@@ -216,7 +216,7 @@ def _velocity_sweeps(velocity, inv_mass, m, c_i, c_j, c_normal, tolerance, remov
     return sweeps
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def support_forces(accel, inv_mass, gravity, m, c_i, c_j, c_normal, force, tolerance, info):
     """Solve the resting contacts' forces (N) and each particle's acceleration (m/s^2).
 
@@ -286,7 +286,7 @@ def _apply_force(accel, inv_mass, i, j, c_normal, k, change):
         accel[i, axis] += change * inv_mass[i] * c_normal[k, axis]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def warm_forces(m, c_i, c_j, old_partner, old_force, force):
     """Start each contact's force from the last step's on the same contact (0 if new)."""
     for k in range(m):
@@ -300,7 +300,7 @@ def warm_forces(m, c_i, c_j, old_partner, old_force, force):
                 break
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def supports(accel, inv_mass, gravity, m, c_i, c_j, force, supported, partner, partner_force,
              wall_mask):
     """Mark supported particles and their resting contacts; return FOUND or TOO_MANY.

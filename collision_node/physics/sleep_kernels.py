@@ -28,7 +28,7 @@ def _travel(velocity, p, dt, sag):
     return math.sqrt(vx * vx + vy * vy + vz * vz) * dt + sag
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def settle_islands(position, velocity, angular, radius, dynamic, asleep, rep, pi, pj, margin,
                    sag, still_time, dt, speed, sleep_time):
     """Update timers and islands in place; return the mask of particles that fell asleep.
@@ -110,7 +110,7 @@ def settle_islands(position, velocity, angular, radius, dynamic, asleep, rep, pi
     return fell
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def near_sleepers(position, radius, velocity, awake, sleepers, margin, dt, sag, ci, cj):
     """Return the mask of candidate pairs (awake ci, sleeping cj) within waking reach.
 
@@ -129,7 +129,7 @@ def near_sleepers(position, radius, velocity, awake, sleepers, margin, dt, sag, 
     return hit
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def sleepers_within_reach(position, radius, velocity, awake, sleepers, margin, dt, sag):
     """Return the mask of ``sleepers`` within waking reach of any of ``awake``.
 

@@ -530,7 +530,7 @@ def _keep_due(items, count, times, dt, listed):
     return kept
 
 
-@njit(cache=True, error_model='numpy')
+@njit(cache=True, nogil=True, error_model='numpy')
 def sweep(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, has_own_mu,
           restitution, wall_restitution, friction, mu, has_walls, low, high, dimensions,
           gravity, has_gravity, resting_pair, resting_wall, has_resting, min_speed,
@@ -808,7 +808,7 @@ def sweep(x, v, ang, inv_mass, radius, dynamic, a, b, own_e, has_own_e, own_mu, 
     return records[:count], index[:count]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def in_contact(x, radius, a, b, slop, has_walls, low, high, dimensions, pairs, walls):
     """Mark the pairs and particle-wall columns touching at the step start.
 

@@ -42,7 +42,7 @@ def _grow(floats, ints, count):
     return more_f, more_i
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def wall_pass(position, velocity, angular, radius, inv_mass, own_rest, wall_rest,
               own_mu, wall_mu, friction, axis, value, inward, has_gravity, gravity, dt,
               threshold, planar):
