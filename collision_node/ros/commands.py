@@ -15,6 +15,12 @@ gets exactly one answer on ``events``::
 (null without one); ``ids`` are inclusive ``[first, last]`` ranges. The
 checks themselves live in :mod:`collision_node.physics.commands`; this
 module only routes messages and formats answers.
+
+While a slice of steps runs (node.py, stepper.py) a request waits for
+its end, at most the step in flight; a ``step`` request is itself taken in
+slices, bounded by ``STEP_REQUEST_SECONDS`` of wall time as well as by its
+count, and answered when it ends. The status goes out after every
+accepted request (once per batch taken).
 """
 
 from __future__ import annotations
@@ -22,10 +28,12 @@ from __future__ import annotations
 import ctypes
 import json
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Optional
 
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.clock import Clock, ClockType
 from rclpy.parameter import Parameter
+from rclpy.task import Future
 from std_msgs.msg import Empty, String
 from std_srvs.srv import SetBool, Trigger
 
@@ -35,8 +43,7 @@ from ..physics.commands import (delete_request, id_ranges, impulse_request, pars
                                 request_id_of, spawn_request, step_count, teleport_request)
 from ..physics.guard import MAX_TEXT_BYTES
 from ..physics.validation import SceneError
-from ..physics.world import NonFiniteStateError
-from .qos import COMMAND_QOS, EVENTS_QOS
+from .qos import COMMAND_QOS, EVENTS_QOS, SERVICE_QOS
 
 MAX_REASON = 400             # characters of a refusal reason in an answer
 # Queued requests one callback may take after its own (see _subscribe).
@@ -49,6 +56,16 @@ TRIM_PERIOD = 1.0            # s between checks for a trim the drain did not mak
 _MALLOC_TRIM = getattr(ctypes.CDLL(None), 'malloc_trim', None)     # glibc only
 # Refusals logged a second at most (each is answered on events anyway).
 LOGGED_PER_SECOND = 20
+# Wall seconds one step request may take (besides its count, 1..10,000 steps):
+# it then ends, answered with the steps it took and "stopped": "time limit".
+STEP_REQUEST_SECONDS = 10.0
+# Requests held while a step is in flight (taken at its end). Beyond either
+# bound the node waits for that step before it takes more, so a flood stays
+# in the middleware's queues (reliable flow control) instead of in memory.
+PENDING_REQUESTS = 1000
+PENDING_BYTES = 16 << 20
+# What a handler returns for a request it answers later (a step request).
+LATER = None
 
 
 class LogBudget:
@@ -95,8 +112,11 @@ class CommandInterface:
         for name, handler in handlers.items():
             self._subscribe(name, handler)
         node.create_subscription(Empty, 'reset', self._on_reset_topic, COMMAND_QOS)
-        node.create_service(Trigger, 'reset', self._on_reset_service)
-        node.create_service(SetBool, 'pause', self._on_pause_service)
+        # Its own callback group: a reset call waiting for the step in flight must
+        # not hold back the node's other callbacks (the slice's end among them).
+        node.create_service(Trigger, 'reset', self._on_reset_service, qos_profile=SERVICE_QOS,
+                            callback_group=ReentrantCallbackGroup())
+        node.create_service(SetBool, 'pause', self._on_pause_service, qos_profile=SERVICE_QOS)
         # A burst can end without its last drain finding the queue empty.
         node.create_timer(TRIM_PERIOD, lambda: self._trim(1 << 20), clock=Clock(
             clock_type=ClockType.STEADY_TIME))
@@ -111,14 +131,15 @@ class CommandInterface:
         subscription = None
 
         def on_message(data: bytes) -> None:
-            self.handle_bytes(name, data, handler)
+            self.take(name, data, handler)
             # The executor hands over one message per wait, which costs more than
             # most requests do; take what is already queued here, within a bound so
-            # the tick (stepping and publishing) still runs on time.
+            # the tick (stepping and publishing) still runs on time. While a step
+            # is in flight the rest stays queued in the middleware.
             deadline = time.monotonic() + DRAIN_SECONDS
             handle = subscription.handle
             for _ in range(DRAIN_MESSAGES):
-                if time.monotonic() > deadline:
+                if time.monotonic() > deadline or self.node.stepper.busy:
                     break
                 with handle:
                     taken = handle.take_message(String, True)
@@ -126,9 +147,21 @@ class CommandInterface:
                     self._trim()
                     break
                 self.handle_bytes(name, taken[0], handler)
+            self.node.flush_status()
 
         subscription = self.node.create_subscription(String, name, on_message, COMMAND_QOS,
                                                      raw=True)
+
+    def take(self, request: str, data: bytes, handler: Callable[[Any], dict]) -> None:
+        """Handle a request now, or at the end of the step in flight (bounded, see PENDING_*)."""
+        node = self.node
+        if not node.stepper.busy:
+            self.handle_bytes(request, data, handler)
+            return
+        node.at_boundary(lambda: self.handle_bytes(request, data, handler))
+        node.pending_bytes += len(data)
+        if len(node.pending) >= PENDING_REQUESTS or node.pending_bytes >= PENDING_BYTES:
+            node.stepper.wait()
 
     # -- answers ------------------------------------------------------------
 
@@ -180,7 +213,9 @@ class CommandInterface:
         except Exception as error:  # noqa: B902 - a bad request must never stop the node
             reason = f'{request}: {type(error).__name__}: {error}'
         else:
-            self.answer(request, request_id, True, **fields)
+            if fields is not LATER:
+                self.answer(request, request_id, True, **fields)
+                self.node.status_changed()
             return
         self.refuse(request, request_id, reason)
 
@@ -242,8 +277,8 @@ class CommandInterface:
         return {'ids': [[pid, pid]], 'position': world.state.position[row].tolist(),
                 'velocity': world.state.velocity[row].tolist()}
 
-    def _step(self, data: Any) -> dict:
-        """Take N steps while paused."""
+    def _step(self, data: Any) -> Optional[dict]:
+        """Begin N steps while paused; they run in slices and are answered at their end."""
         count = step_count(data)
         node = self.node
         if not node.paused:
@@ -253,26 +288,35 @@ class CommandInterface:
             raise SceneError(f'step: stepping stopped ({node.failed}); reset to go on')
         # A subscriber that appeared since the last tick sees these steps' impacts too.
         node.reports.follow_listeners(node.world)
-        for done in range(count):
-            try:
-                node.world.step(1)
-            except NonFiniteStateError as error:
-                node.failed = str(error)
-                node.get_logger().error(f'stopped stepping: {error}; reset to go on')
-                raise SceneError(f'step: stopped after {done + 1} of {count} steps: '
-                                 f'{error}') from None
-        return {'steps': count, 'time': node.world.time}
+        node.begin_step_request(request_id_of(data, 'step'), count, STEP_REQUEST_SECONDS)
+        return LATER
+
+    def answer_step(self, request_id: Any, done: int, count: int,
+                    stopped: Optional[str]) -> None:
+        """Answer a step request that ended: all ``count`` steps, or ``done`` and why not."""
+        fields: dict[str, Any] = {'steps': done, 'time': self.node.world.time}
+        if stopped is not None:
+            limit = f' of {STEP_REQUEST_SECONDS:g} s' if stopped == 'time limit' else ''
+            fields.update(steps_requested=count, stopped=stopped + limit)
+        self.answer('step', request_id, True, **fields)
+        self.node.status_changed()
 
     # -- reset and pause --------------------------------------------------------
 
     def _on_reset_topic(self, msg: Empty) -> None:
-        """Reset on a message on the ``reset`` topic."""
-        self._reset()
+        """Reset on a message on the ``reset`` topic (at the end of the step in flight)."""
+        self.node.at_boundary(self._reset)
 
-    def _on_reset_service(self, request: Trigger.Request,
-                          response: Trigger.Response) -> Trigger.Response:
-        """Reset on a ``reset`` service call and reply."""
-        response.message = self._reset()
+    async def _on_reset_service(self, request: Trigger.Request,
+                                response: Trigger.Response) -> Trigger.Response:
+        """Reset on a ``reset`` service call and reply once done.
+
+        While a step is in flight the reply waits for its end; the executor
+        serves other callbacks meanwhile.
+        """
+        done = Future()
+        self.node.at_boundary(lambda: done.set_result(self._reset()))
+        response.message = await done
         response.success = True
         return response
 
@@ -284,16 +328,25 @@ class CommandInterface:
 
     def _on_pause_service(self, request: SetBool.Request,
                           response: SetBool.Response) -> SetBool.Response:
-        """Pause (data true) or resume through the ``paused`` parameter, and reply."""
-        result = self.node.set_parameters([Parameter('paused', Parameter.Type.BOOL,
-                                                     bool(request.data))])[0]
+        """Pause (data true) or resume through the ``paused`` parameter, and reply at once.
+
+        The world stops (or goes on) after the step in flight, if one is;
+        the answer on ``events`` then carries the time it stopped at.
+        """
+        paused = bool(request.data)
+        node = self.node
+        result = node.set_parameters([Parameter('paused', Parameter.Type.BOOL, paused)])[0]
         response.success = result.successful
-        response.message = (f'{"paused" if request.data else "running"} at time '
-                            f'{self.node.world.time:g} s' if result.successful
-                            else f'pause: {result.reason}')
-        if result.successful:
-            self.answer('pause', None, True, paused=bool(request.data),
-                        time=self.node.world.time)
-        else:
+        state = 'paused' if paused else 'running'
+        if not result.successful:
+            response.message = f'pause: {result.reason}'
             self.answer('pause', None, False, reason=response.message)
+        else:
+            if node.stepper.busy:
+                response.message = (f'{state} after the step in flight (from time '
+                                    f'{node.world.time:g} s)')
+            else:
+                response.message = f'{state} at time {node.world.time:g} s'
+            node.at_boundary(lambda: self.answer('pause', None, True, paused=paused,
+                                                 time=node.world.time))
         return response

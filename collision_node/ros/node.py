@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import json
 import time
-from typing import Any, Optional
+from collections import deque
+from dataclasses import dataclass
+from typing import Any, Callable, Optional
 
 import rclpy
 from geometry_msgs.msg import PoseArray, VelocityStamped
@@ -35,19 +37,48 @@ from ..physics.validation import SceneError
 from ..physics.world import NonFiniteStateError, World
 from .cli import check_command_line
 from .commands import CommandInterface
-from .pacing import Lag, Pacer, RateMeter, STEP_BUDGET
+from .pacing import came_short, Lag, Pacer, RateMeter, STEP_BUDGET
 from .parameters import (as_double, DEFAULT_SCENE, integers_as_doubles, invalid_parameter,
                          PARAMETERS)
 from .qos import fastdds_profiles, STATE_QOS, STATUS_QOS, VELOCITY_QOS
 from .reports import Reports
 from .status import status_report
+from .stepper import SliceResult, Stepper
 
 NODE_NAME = 'collision_node'
-STATUS_PERIOD = 0.5          # s of wall time between status messages
+STATUS_PERIOD = 0.5          # s of wall time between status messages (and after each change)
+# At exit, seconds to wait for the step in flight to end before leaving it to the process's end.
+EXIT_WAIT = 1.0
+
+
+@dataclass
+class TickPlan:
+    """The steps one tick asked for (``due``), taken in slices until ``deadline``."""
+
+    due: int
+    dropped: float               # simulated seconds of backlog the tick dropped
+    deadline: float              # time.monotonic() after which no further step is begun
+    done: int = 0
+
+
+@dataclass
+class StepRequest:
+    """A ``step`` request being taken in slices (answered once it ends, commands.py)."""
+
+    request_id: Any
+    count: int
+    deadline: float              # time.monotonic() at which it stops (STEP_REQUEST_SECONDS)
+    done: int = 0
 
 
 class CollisionNode(Node):
-    """Steps a world in (scaled) real time and publishes it; takes commands (commands.py)."""
+    """Steps a world in (scaled) real time and publishes it; takes commands (commands.py).
+
+    The steps run in slices on a worker thread (stepper.py) while this
+    node's callbacks keep being served; everything that touches the world
+    outside a slice runs on the executor thread between slices
+    (:meth:`at_boundary`), so a command waits at most for the step in flight.
+    """
 
     def __init__(self, **kwargs: Any) -> None:
         """Declare parameters, load the scene, create the ROS interfaces."""
@@ -84,6 +115,16 @@ class CollisionNode(Node):
         self.meter = RateMeter()
         self.ticks = 0
         self.meter.add(time.monotonic(), self.world.time, self._collisions())
+        # Slices of steps on the worker thread, and what waits for a slice's end.
+        self.stepper = Stepper(self, self._slice_done)
+        self.pending: deque[Callable[[], None]] = deque()
+        self.pending_bytes = 0       # request bytes among the pending work (commands.py)
+        self._idle_work: dict[str, Callable[[], None]] = {}
+        self._draining = False
+        self.plan: Optional[TickPlan] = None
+        self.step_request: Optional[StepRequest] = None
+        self._outputs_due = False    # a tick came while a slice ran
+        self._status_due = False     # an accepted command changed the world
 
         self.pub_poses = self.create_publisher(PoseArray, 'particles/poses', STATE_QOS)
         self.pub_velocities = self.create_publisher(VelocityStamped, 'particles/velocities',
@@ -101,7 +142,8 @@ class CollisionNode(Node):
                                             clock=self.steady)
         self.status_timer = self.create_timer(STATUS_PERIOD, self._publish_status,
                                               clock=self.steady)
-        self.reports = Reports(self, self.status, self.steady)   # /diagnostics, collisions
+        self.reports = Reports(self, self.status, self.steady,   # /diagnostics, collisions
+                               when_idle=self.when_idle)
         self.add_pre_set_parameters_callback(integers_as_doubles)
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -129,15 +171,19 @@ class CollisionNode(Node):
         return SetParametersResult(successful=True)
 
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
-        """Apply accepted runtime changes from the next tick on."""
-        now = time.monotonic()
+        """Apply accepted runtime changes: settings at once, their effect on the world next.
+
+        Pausing stops the slices after the step in flight; the pacing's new
+        anchor (and the end of a step request on a resume) is set at the
+        boundary, when the world's time is that of a whole step.
+        """
+        anchor = resumed = False
         for p in parameters:
             if p.name == 'real_time_factor':
                 self.real_time_factor = p.value
                 self.pacer.factor = p.value
-                self.pacer.restart(now, self.world.time)
-                self.lag.clear()
                 self.keeping_up = True
+                anchor = True
             elif p.name == 'publish_rate':
                 self.publish_rate = p.value
                 # The new period counts from now: without the reset the next
@@ -145,15 +191,119 @@ class CollisionNode(Node):
                 self.tick_timer.timer_period_ns = int(1e9 / p.value)
                 self.tick_timer.reset()
             elif p.name == 'paused':
+                resumed = self.paused and not p.value
                 self.paused = p.value
-                self.pacer.restart(now, self.world.time)
-                self.lag.clear()
+                anchor = True
             elif p.name == 'publish_clock':
                 self.publish_clock = p.value
             elif p.name == 'frame_id':
                 self.frame_id = p.value
             self.get_logger().info(f'parameter {p.name} = {p.value!r}')
-        self._publish_status()
+
+        def apply() -> None:
+            if anchor:
+                self.pacer.restart(time.monotonic(), self.world.time)
+                self.lag.clear()
+            if resumed and self.step_request is not None:
+                self._finish_step_request('resumed')
+            self._publish_status()
+        self.at_boundary(apply)
+
+    # -- the world between slices -------------------------------------------
+
+    def at_boundary(self, work: Callable[[], None], interrupt: bool = True) -> None:
+        """Run ``work`` (it touches the world) now if no slice runs, else at the slice's end.
+
+        With ``interrupt`` the slice ends after its step in flight.
+        """
+        if not self.stepper.busy and not self._draining:
+            work()
+            return
+        self.pending.append(work)
+        if interrupt:
+            self.stepper.interrupt.set()
+
+    def when_idle(self, key: str, work: Callable[[], None]) -> None:
+        """Run ``work`` now if no slice runs, else once at the slice's end (one per ``key``)."""
+        if not self.stepper.busy and not self._draining:
+            work()
+        else:
+            self._idle_work[key] = work
+
+    def _slice_done(self, result: SliceResult) -> None:
+        """Count an ended slice (executor thread), run what waited for it, go on stepping."""
+        if self.step_request is not None:
+            self.step_request.done += result.steps
+        elif self.plan is not None:
+            self.plan.done += result.steps
+        if result.error is not None:
+            if not isinstance(result.error, NonFiniteStateError):
+                raise result.error
+            self._stop_stepping(result.error)
+        self._draining = True
+        try:
+            while self.pending:
+                self.pending.popleft()()
+            self.pending_bytes = 0
+            while self._idle_work:
+                self._idle_work.pop(next(iter(self._idle_work)))()
+        finally:
+            self._draining = False
+        self.flush_status()
+        self._continue()
+
+    def _stop_stepping(self, error: NonFiniteStateError) -> None:
+        """Stop on a non-finite state: no further step until a reset."""
+        self.failed = str(error)
+        self.get_logger().error(f'stopped stepping: {error}; reset to go on')
+        self.plan = None
+        if self.step_request is not None:
+            request, self.step_request = self.step_request, None
+            self.commands.refuse('step', request.request_id,
+                                 f'step: stopped after {request.done} of {request.count} '
+                                 f'steps: {error}')
+
+    def _continue(self) -> None:
+        """Begin the next slice of the step request or the tick under way, or end them."""
+        if self.stepper.busy or self._draining:
+            return
+        now = time.monotonic()
+        if self.plan is not None and (self.paused or self.failed is not None):
+            self.plan = None                  # cut short by a pause: no lag to judge
+        request = self.step_request
+        if request is not None:
+            if request.done < request.count and now < request.deadline:
+                if self._outputs_due:
+                    self._publish_tick()
+                self.stepper.start(self.world, request.count - request.done,
+                                   min(request.deadline, now + STEP_BUDGET / self.publish_rate))
+                return
+            self._finish_step_request(None if request.done >= request.count else 'time limit')
+        plan = self.plan
+        if plan is not None:
+            if plan.done < plan.due and (plan.done == 0 or now <= plan.deadline):
+                self.stepper.start(self.world, plan.due - plan.done, plan.deadline)
+                return
+            self.plan = None
+            self._end_tick(plan)
+        elif self._outputs_due:
+            self._publish_tick()
+
+    def begin_step_request(self, request_id: Any, count: int, seconds: float) -> None:
+        """Take ``count`` steps in slices (while paused), for at most ``seconds`` of wall time.
+
+        A request under way ends first (answered with the steps it took).
+        """
+        if self.step_request is not None:
+            self._finish_step_request('a new step request')
+        self.step_request = StepRequest(request_id, count, time.monotonic() + seconds)
+        self._continue()
+
+    def _finish_step_request(self, stopped: Optional[str]) -> None:
+        """Answer the step request under way and forget it (``stopped``: why it ended early)."""
+        request, self.step_request = self.step_request, None
+        self.commands.answer_step(request.request_id, request.done, request.count, stopped)
+        self.flush_status()
 
     # -- stepping and publishing ------------------------------------------
 
@@ -161,27 +311,11 @@ class CollisionNode(Node):
         """Particle and wall collisions so far."""
         return self.world.stats.collisions + self.world.stats.wall_collisions
 
-    def _advance(self) -> None:
-        """Take the steps due within this tick's budget; drop a backlog, never run ahead."""
-        start = time.monotonic()
-        dropped = self.pacer.drop_backlog(start, self.world.time, 1.0 / self.publish_rate)
-        due = self.pacer.steps_due(start, self.world.time)
-        deadline = start + STEP_BUDGET / self.publish_rate
-        done = 0
-        try:
-            while done < due:
-                self.world.step(1)
-                done += 1
-                if done < due and time.monotonic() > deadline:
-                    break
-        except NonFiniteStateError as error:
-            self.failed = str(error)
-            self.get_logger().error(f'stopped stepping: {error}; reset to go on')
-            return
-        # Behind: the physics could not do what was due, or a late tick cost more
-        # than a step (less is scheduler jitter: dropped and counted, not a lag).
-        behind = done < due or dropped > self.world.dt
-        change = self.lag.note(time.monotonic(), behind, dropped)
+    def _end_tick(self, plan: TickPlan) -> None:
+        """Judge the tick's lag, then publish; log an episode's start and end."""
+        short = came_short(plan.done, plan.due, plan.dropped, self.world.dt)
+        change = self.lag.note(time.monotonic(), self.world.time, self.real_time_factor, short,
+                               plan.dropped)
         self.keeping_up = not self.lag.behind
         if change == 'start':
             self.get_logger().warning(
@@ -191,16 +325,30 @@ class CollisionNode(Node):
         elif change == 'end':
             self.get_logger().info(f'keeping up again; {self.lag.dropped:g} s of simulated '
                                    'time were dropped while behind')
+        self._publish_tick()
 
     def _tick(self) -> None:
-        """Step, then publish every output somebody subscribes to."""
-        if self.ticks == 0:
+        """Take the steps due (in slices), then publish every output somebody subscribes to."""
+        self.ticks += 1
+        if self.stepper.busy:
+            self._outputs_due = True          # published when the slice ends
+            return
+        if self.ticks == 1:
             # Simulated time starts with the first tick, not at construction: the
             # start-up (interfaces, kernels from the cache) is no backlog to drop.
             self.pacer.restart(time.monotonic(), self.world.time)
-        self.ticks += 1
-        if not self.paused and self.failed is None:
-            self._advance()
+        if self.paused or self.failed is not None:
+            self._publish_tick()
+            return
+        start = time.monotonic()
+        dropped = self.pacer.drop_backlog(start, self.world.time, 1.0 / self.publish_rate)
+        self.plan = TickPlan(self.pacer.steps_due(start, self.world.time), dropped,
+                             start + STEP_BUDGET / self.publish_rate)
+        self._continue()
+
+    def _publish_tick(self) -> None:
+        """Measure the rates and publish the outputs of the state reached."""
+        self._outputs_due = False
         self.meter.add(time.monotonic(), self.world.time, self._collisions())
         self.publish_outputs()
 
@@ -233,13 +381,27 @@ class CollisionNode(Node):
         return report
 
     def _publish_status(self) -> None:
-        """Publish the status on ``status`` (JSON)."""
-        self.pub_status.publish(String(data=json.dumps(self.status())))
+        """Publish the status on ``status`` (JSON), once the world is between slices."""
+        self._status_due = False
+        self.when_idle('status', lambda: self.pub_status.publish(
+            String(data=json.dumps(self.status()))))
+
+    def status_changed(self) -> None:
+        """Have the status published after the command being handled (``flush_status``)."""
+        self._status_due = True
+
+    def flush_status(self) -> None:
+        """Publish the status if a command changed the world since it last went out."""
+        if self._status_due:
+            self._publish_status()
 
     # -- commands (the topics and services are in commands.py) ------------
 
     def reset_world(self) -> str:
-        """Return to the scene's initial state at time 0; return the log line."""
+        """Return to the scene's initial state at time 0; return the log line (between slices)."""
+        if self.step_request is not None:
+            self._finish_step_request('reset')
+        self.plan = None
         self.world.reset()
         self.failed = None
         now = time.monotonic()
@@ -277,6 +439,7 @@ def main(args: Optional[list[str]] = None) -> int:
             raise
     finally:
         if node is not None:
+            node.stepper.close(EXIT_WAIT)
             node.destroy_node()
         rclpy.try_shutdown()
     return 0
