@@ -66,6 +66,9 @@ PENDING_REQUESTS = 1000
 PENDING_BYTES = 16 << 20
 # What a handler returns for a request it answers later (a step request).
 LATER = None
+# Seconds a reset service call waits for the step in flight before it is
+# answered anyway (the reset then follows that step).
+RESET_REPLY_WAIT = 0.05
 
 
 class LogBudget:
@@ -118,8 +121,8 @@ class CommandInterface:
                             callback_group=ReentrantCallbackGroup())
         node.create_service(SetBool, 'pause', self._on_pause_service, qos_profile=SERVICE_QOS)
         # A burst can end without its last drain finding the queue empty.
-        node.create_timer(TRIM_PERIOD, lambda: self._trim(1 << 20), clock=Clock(
-            clock_type=ClockType.STEADY_TIME))
+        self.steady = Clock(clock_type=ClockType.STEADY_TIME)
+        node.create_timer(TRIM_PERIOD, lambda: self._trim(1 << 20), clock=self.steady)
 
     def _subscribe(self, name: str, handler: Callable[[Any], dict]) -> None:
         """Subscribe to one command topic raw; each callback also drains what is queued.
@@ -309,14 +312,32 @@ class CommandInterface:
 
     async def _on_reset_service(self, request: Trigger.Request,
                                 response: Trigger.Response) -> Trigger.Response:
-        """Reset on a ``reset`` service call and reply once done.
+        """Reset on a ``reset`` service call; reply once done, or after RESET_REPLY_WAIT.
 
-        While a step is in flight the reply waits for its end; the executor
-        serves other callbacks meanwhile.
+        The reset waits for the end of the step in flight. A step that ends
+        within RESET_REPLY_WAIT (any small world's) gets the usual reply,
+        after the reset and its status; a longer one gets a reply at once
+        saying the reset follows that step. The executor serves other
+        callbacks meanwhile.
         """
-        done = Future()
-        self.node.at_boundary(lambda: done.set_result(self._reset()))
-        response.message = await done
+        node = self.node
+        replied = Future()
+        since = node.world.time
+
+        def reset() -> None:
+            message = self._reset()
+            if not replied.done():
+                replied.set_result(message)
+        node.at_boundary(reset)
+        if not replied.done():
+            timer = node.create_timer(RESET_REPLY_WAIT, lambda: replied.done() or (
+                replied.set_result(f'resetting after the step in flight (from time {since:g} '
+                                   's)')), clock=self.steady)
+            try:
+                await replied
+            finally:
+                node.destroy_timer(timer)
+        response.message = replied.result()
         response.success = True
         return response
 
