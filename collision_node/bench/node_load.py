@@ -36,7 +36,7 @@ client. Six parts, printed as one Markdown table:
     issue's: radius 0.8 mm on the default table) takes a 10,000-step
     request: median / p90 / max of ``--pause-samples`` calls, the seconds
     per step, where the time limit ends the request, and a reset's reply
-    (it waits for the step in flight).
+    (after RESET_REPLY_WAIT; the reset follows the step in flight).
 
 Every number is what was measured; a node that dies, hangs or drops
 answers is reported as such, never retried into a good figure.
@@ -705,7 +705,7 @@ def pause_while_stepping(workdir: Path, domain_id: int, particles: int, samples:
         step.publish(String(data=json.dumps({'steps': STEP_REQUEST, 'request_id': 'again'})))
         stepped(steps_before)
         waited = call(reset, Trigger.Request())
-        rows.append(('f', '/reset reply while it steps (waits for the step in flight)',
+        rows.append(('f', '/reset reply while it steps (the reset follows the step)',
                      '-' if waited is None else f'{1e3 * waited:.0f} ms'))
     finally:
         client.close()
