@@ -15,6 +15,7 @@ import time
 import pytest
 import rclpy
 from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
@@ -181,41 +182,53 @@ class Recorder:
 
 @pytest.fixture
 def in_process():
-    """Give a paused node in this process that is never spun: no timer of it can fire."""
+    """Give a paused node in this process, its 0.5 s status timer cancelled, and an executor."""
     context = Context()
     rclpy.init(context=context, domain_id=unique_domain_id())
     made = CollisionNode(context=context, parameter_overrides=[
         Parameter('paused', Parameter.Type.BOOL, True)])
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(made)
     try:
+        made.status_timer.cancel()         # every status from now on comes from a command
         made.pub_status = Recorder()
-        yield made
+        yield made, executor
     finally:
         made.stepper.close(1.0)
+        executor.shutdown()
         made.destroy_node()
         rclpy.shutdown(context=context)
 
 
-def deliver(node, topic: str, text: str) -> None:
-    """Hand a request to the node's subscription callback, as the executor does."""
+def deliver(node, executor, topic: str, text: str) -> dict:
+    """Hand a request to the node's subscription callback; return the status that follows."""
+    statuses = node.pub_status.published
+    seen = len(statuses)
     subscription = next(s for s in node.subscriptions if s.topic_name.endswith('/' + topic))
     subscription.callback(string_bytes(text))
+    deadline = time.monotonic() + 30.0
+    while len(statuses) == seen:
+        assert time.monotonic() < deadline, f'no status after {topic} {text}'
+        executor.spin_once(timeout_sec=0.05)
+    return statuses[-1]
 
 
-def test_every_accepted_command_publishes_the_status_at_once(in_process):
-    """No spin, so no 0.5 s status timer: each status below comes from the command."""
-    node, statuses = in_process, in_process.pub_status.published
-    deliver(node, 'spawn', '{position: [0.5, 0.3], radius: 0.05, mass: 2.0}')
-    assert [s['particles'] for s in statuses] == [17]
-    deliver(node, 'teleport', '{id: 0, velocity: [1.0, 0.0]}')
-    assert len(statuses) == 2 and statuses[-1]['particles'] == 17
+def test_every_accepted_command_publishes_the_status(in_process):
+    """The periodic status is off: each status below comes from the command."""
+    node, executor = in_process
+    assert deliver(node, executor, 'spawn', '{position: [0.5, 0.3], radius: 0.05, '
+                                            'mass: 2.0}')['particles'] == 17
+    status = deliver(node, executor, 'teleport', '{id: 0, velocity: [1.0, 0.0]}')
     # The cue ball's 5 m/s became 1 m/s; the new particle rests.
-    assert statuses[-1]['kinetic_energy'] == pytest.approx(0.5 * 0.17 * 1.0, rel=1e-12)
-    deliver(node, 'delete', '{ids: [16]}')
-    assert statuses[-1]['particles'] == 16
-    deliver(node, 'step', '{steps: 3}')            # taken by the worker thread, in slices
-    while node.step_request is not None:
-        node.stepper.wait()                        # a slice's end, as the guard condition
-    assert statuses[-1]['steps'] == 3 and statuses[-1]['time'] == pytest.approx(3 * DT)
-    count = len(statuses)
-    deliver(node, 'teleport', '{id: 99, velocity: [1.0, 0.0]}')     # refused: no change
-    assert len(statuses) == count
+    assert status['particles'] == 17
+    assert status['kinetic_energy'] == pytest.approx(0.5 * 0.17 * 1.0, rel=1e-12)
+    assert deliver(node, executor, 'delete', '{ids: [16]}')['particles'] == 16
+    status = deliver(node, executor, 'step', '{steps: 3}')    # answered when the steps end
+    assert status['steps'] == 3 and status['time'] == pytest.approx(3 * DT)
+    # A refusal changes nothing and sends no status.
+    count = len(node.pub_status.published)
+    subscription = next(s for s in node.subscriptions if s.topic_name.endswith('/teleport'))
+    subscription.callback(string_bytes('{id: 99, velocity: [1.0, 0.0]}'))
+    assert len(node.pub_status.published) == count and not node._status_due
+    assert deliver(node, executor, 'impulse', '{id: 1, impulse: [0.017, 0.0]}')[
+        'kinetic_energy'] == pytest.approx(0.5 * 0.17 * (1.0 + 0.01), rel=1e-12)

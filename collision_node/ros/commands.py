@@ -137,34 +137,42 @@ class CommandInterface:
             self.take(name, data, handler)
             # The executor hands over one message per wait, which costs more than
             # most requests do; take what is already queued here, within a bound so
-            # the tick (stepping and publishing) still runs on time. While a step
-            # is in flight the rest stays queued in the middleware.
+            # the tick (stepping and publishing) still runs on time.
             deadline = time.monotonic() + DRAIN_SECONDS
             handle = subscription.handle
             for _ in range(DRAIN_MESSAGES):
-                if time.monotonic() > deadline or self.node.stepper.busy:
+                if time.monotonic() > deadline:
                     break
                 with handle:
                     taken = handle.take_message(String, True)
                 if taken is None:
                     self._trim()
                     break
-                self.handle_bytes(name, taken[0], handler)
+                self.take(name, taken[0], handler)
             self.node.flush_status()
 
         subscription = self.node.create_subscription(String, name, on_message, COMMAND_QOS,
                                                      raw=True)
 
     def take(self, request: str, data: bytes, handler: Callable[[Any], dict]) -> None:
-        """Handle a request now, or at the end of the step in flight (bounded, see PENDING_*)."""
+        """Handle a request now, or in turn once the slice in flight ends (see PENDING_*).
+
+        The slice is not cut short for it: it ends within STEP_BUDGET of a
+        tick period or after its step in flight, whichever is later, and what
+        came meanwhile is then taken in one batch. Beyond PENDING_* the node
+        waits for the slice here, so a flood stays in the middleware's queue.
+        """
         node = self.node
-        if not node.stepper.busy:
+        if not node.stepper.busy and not node.pending:
             self.handle_bytes(request, data, handler)
             return
-        node.at_boundary(lambda: self.handle_bytes(request, data, handler))
-        node.pending_bytes += len(data)
-        if len(node.pending) >= PENDING_REQUESTS or node.pending_bytes >= PENDING_BYTES:
-            node.stepper.wait()
+        node.at_boundary(lambda: self.handle_bytes(request, data, handler), interrupt=False,
+                         size=len(data))
+        while len(node.pending) >= PENDING_REQUESTS or node.pending_bytes >= PENDING_BYTES:
+            if node.stepper.busy:
+                node.stepper.wait()
+            else:
+                node.run_pending()
 
     # -- answers ------------------------------------------------------------
 
