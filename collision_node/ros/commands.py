@@ -30,7 +30,7 @@ import json
 import time
 from typing import Any, Callable, Optional
 
-from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.clock import Clock, ClockType
 from rclpy.parameter import Parameter
 from rclpy.task import Future
@@ -94,6 +94,30 @@ class LogBudget:
         return False
 
 
+class HoldableGroup(MutuallyExclusiveCallbackGroup):
+    """A callback group whose messages stay queued in the middleware while ``held``.
+
+    The node holds its command topics while a slice of steps runs: a
+    request could not touch the world before the slice ends anyway, and
+    left in the (KEEP_ALL, reliable) reader it costs neither memory nor the
+    stepping thread's share of the interpreter; the slice's end releases it
+    and the batch is taken as usual.
+    """
+
+    def __init__(self) -> None:
+        """Start released."""
+        super().__init__()
+        self.held = False
+
+    def can_execute(self, entity: Any) -> bool:
+        """Tell whether ``entity``'s callback may run: never while held."""
+        return not self.held and super().can_execute(entity)
+
+    def beginning_execution(self, entity: Any) -> bool:
+        """Begin ``entity``'s callback unless held (its message then stays queued)."""
+        return not self.held and super().beginning_execution(entity)
+
+
 class CommandInterface:
     """Subscriptions and services of the node's commands, and its answers on ``events``."""
 
@@ -109,12 +133,15 @@ class CommandInterface:
         self._logged: dict[str, float] = {}     # monotonic time of each kind's last log line
         self._taken = 0                         # request bytes taken since the last trim
         self.pub_events = node.create_publisher(String, 'events', EVENTS_QOS)
+        # The command topics, held while a slice of steps runs (node.py).
+        self.topics = HoldableGroup()
         handlers: dict[str, Callable[[Any], dict]] = {
             'spawn': self._spawn, 'delete': self._delete, 'teleport': self._teleport,
             'impulse': self._impulse, 'step': self._step}
         for name, handler in handlers.items():
             self._subscribe(name, handler)
-        node.create_subscription(Empty, 'reset', self._on_reset_topic, COMMAND_QOS)
+        node.create_subscription(Empty, 'reset', self._on_reset_topic, COMMAND_QOS,
+                                 callback_group=self.topics)
         # Its own callback group: a reset call waiting for the step in flight must
         # not hold back the node's other callbacks (the slice's end among them).
         node.create_service(Trigger, 'reset', self._on_reset_service, qos_profile=SERVICE_QOS,
@@ -152,7 +179,7 @@ class CommandInterface:
             self.node.flush_status()
 
         subscription = self.node.create_subscription(String, name, on_message, COMMAND_QOS,
-                                                     raw=True)
+                                                     raw=True, callback_group=self.topics)
 
     def take(self, request: str, data: bytes, handler: Callable[[Any], dict]) -> None:
         """Handle a request now, or in turn once the slice in flight ends (see PENDING_*).

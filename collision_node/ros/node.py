@@ -275,6 +275,7 @@ class CollisionNode(Node):
 
     def _slice_done(self, result: SliceResult) -> None:
         """Count an ended slice (executor thread), run what waited for it, go on stepping."""
+        self.commands.topics.held = False
         if self.step_request is not None:
             self.step_request.done += result.steps
         elif self.plan is not None:
@@ -283,8 +284,19 @@ class CollisionNode(Node):
             if not isinstance(result.error, NonFiniteStateError):
                 raise result.error
             self._stop_stepping(result.error)
+        if self.plan is not None and not result.interrupted:
+            # The tick's steps are done (or its budget spent): publish first, so
+            # what waited does not make the tick late; then the waiting work.
+            self._continue()
+            if self.stepper.busy:
+                return
         self.run_pending()
-        self._continue()
+        if self.step_request is not None:
+            # The next slice after one executor round: the requests held during
+            # this one are taken first (a new step request, a reset).
+            self._pending_guard.trigger()
+        else:
+            self._continue()
 
     def _stop_stepping(self, error: NonFiniteStateError) -> None:
         """Stop on a non-finite state: no further step until a reset."""
@@ -309,19 +321,24 @@ class CollisionNode(Node):
             if request.done < request.count and now < request.deadline:
                 if self._outputs_due:
                     self._publish_tick()
-                self.stepper.start(self.world, request.count - request.done,
-                                   min(request.deadline, now + STEP_BUDGET / self.publish_rate))
+                self._start_slice(request.count - request.done,
+                                  min(request.deadline, now + STEP_BUDGET / self.publish_rate))
                 return
             self._finish_step_request(None if request.done >= request.count else 'time limit')
         plan = self.plan
         if plan is not None:
             if plan.done < plan.due and (plan.done == 0 or now <= plan.deadline):
-                self.stepper.start(self.world, plan.due - plan.done, plan.deadline)
+                self._start_slice(plan.due - plan.done, plan.deadline)
                 return
             self.plan = None
             self._end_tick(plan)
         elif self._outputs_due:
             self._publish_tick()
+
+    def _start_slice(self, count: int, deadline: float) -> None:
+        """Hand ``count`` steps (until ``deadline``) to the worker; hold the command topics."""
+        self.commands.topics.held = True
+        self.stepper.start(self.world, count, deadline)
 
     def begin_step_request(self, request_id: Any, count: int, seconds: float) -> None:
         """Take ``count`` steps in slices (while paused), for at most ``seconds`` of wall time.

@@ -29,10 +29,11 @@ from ..physics.world import World
 
 
 class SliceResult(NamedTuple):
-    """What a slice did: the steps that ended, and the exception that stopped it, if any."""
+    """What a slice did: the steps that ended, the exception that stopped it, if any."""
 
     steps: int
     error: Optional[BaseException]
+    interrupted: bool            # :attr:`Stepper.interrupt` was set when it ended
 
 
 class Stepper:
@@ -97,7 +98,7 @@ class Stepper:
                         break
             except BaseException as raised:  # noqa: B902 - handed to the executor thread
                 error = raised
-            self._result = SliceResult(world.steps - first, error)
+            self._result = SliceResult(world.steps - first, error, self.interrupt.is_set())
             self._ended.set()
             try:
                 self._guard.trigger()
