@@ -1,15 +1,27 @@
 """Offline runner: ``python -m collision_node.simulate SCENE [options]``.
 
 Runs a scene without ROS, prints a short summary, and writes the final
-state and statistics as JSON. A bad scene or argument exits with code 2
-and one line on stderr, before any step is taken (``--out`` included).
+state and statistics as JSON, and on request pictures of the final state
+and of the energy over time (drawn by ``collision_node.pictures``). A bad
+scene or argument exits with code 2 and one line on stderr, before any
+step is taken (every output path included).
 Ctrl-C (SIGINT) or SIGTERM stops the run within a second: at the step
 boundary if the step in flight ends within ``STOP_GRACE_S``, else the step in
 flight is abandoned and the last completed state is reported. The summary
 and the JSON of that state (``"interrupted": true``) are still written, and
 the exit code is 130; a second signal exits at once (130, nothing written).
 The steps run on a worker thread (the compiled kernels release the GIL), so
-the main thread answers signals whatever the step is doing.
+the main thread answers signals whatever the step is doing. A world too
+large for the machine's memory (``MemoryError`` while loading or stepping)
+is one line and exit 2.
+``--profile`` adds the wall time per stage (``World.profile``) to the
+output and the JSON. ``--record PATH`` also writes the run as a rosbag2 bag
+(MCAP) of what the node would publish, stamped with simulated time
+(:mod:`collision_node.recording`; it needs the ROS 2 message packages,
+imported only then).
+output and the JSON. ``--compare-presets`` runs the scene under every
+preset it accepts instead and prints one table of their costs and their
+differences from ``exact`` (``collision_node.preset_compare``).
 """
 
 from __future__ import annotations
@@ -31,11 +43,11 @@ from typing import Any, Callable, Optional, Sequence
 import numpy as np
 from tqdm import tqdm
 
-from .physics.accuracy import parse_accuracy_text
-from .physics.kernels import prepare as prepare_kernels
-from .physics.scene import load_scene
-from .physics.validation import SceneError
-from .physics.world import NonFiniteStateError, World
+from .physics.model.accuracy import parse_accuracy_text
+from .physics.step.kernels import prepare as prepare_kernels
+from .physics.model.scene import load_scene
+from .physics.model.validation import SceneError, one_line
+from .physics.step.world import NonFiniteStateError, World
 
 # Runs shorter than this never show a progress bar.
 PROGRESS_DELAY_S = 2.0
@@ -53,12 +65,19 @@ SNAPSHOT_AFTER_S = 0.05
 # Seconds between two looks of the main thread at the run (progress bar, signals).
 POLL_S = 0.1
 # More steps than this is a typo or an overflow (1e9 steps of a single
-# particle already take hours), refused before the run.
+# particle already take hours), refused before the run: --steps, and the
+# steps --duration (or the scene's duration) makes at the scene's dt.
 MAX_STEPS = 10 ** 9
 
 
 class UsageError(Exception):
     """A command-line argument the runner cannot accept."""
+
+
+def out_of_memory(error: MemoryError, doing: str) -> str:
+    """Return the one-line report of a ``MemoryError`` met while ``doing``."""
+    detail = one_line(str(error), 80)
+    return f'out of memory {doing} (MemoryError{": " + detail if detail else ""})'
 
 
 class _Parser(argparse.ArgumentParser):
@@ -76,9 +95,28 @@ def build_parser() -> argparse.ArgumentParser:
     length.add_argument('--duration', type=float, help='simulated seconds (default: scene)')
     length.add_argument('--steps', type=int, help='number of steps')
     parser.add_argument('--out', help='write the final state and stats as JSON to this file')
+    parser.add_argument('--snapshot', metavar='FILE.png',
+                        help='draw the final state to scale (x-y plane, walls, static '
+                        'particles grey) into this picture')
+    parser.add_argument('--energy-plot', metavar='FILE.png',
+                        help='plot kinetic and potential energy over time above the losses '
+                        'per effect into this picture')
     parser.add_argument('--explain', action='store_true',
                         help='print the step pipeline and exit')
     parser.add_argument('--quiet', action='store_true', help='no summary on stdout')
+    parser.add_argument('--profile', action='store_true',
+                        help='print the wall time per stage (ms per step and share; the '
+                             'first step, which loads the compiled code, apart)')
+    parser.add_argument('--record', metavar='PATH',
+                        help='also write the run as a rosbag2 bag (MCAP) in the new folder PATH')
+    parser.add_argument('--record-rate', type=float, metavar='HZ',
+                        help='frames per simulated second in the bag (default: 30, the '
+                        "node's publish_rate; at most one per step)")
+    parser.add_argument('--compare-presets', action='store_true',
+                        help='run the scene under every preset it accepts for its duration '
+                             '(or --steps/--duration) and print one table: cost per '
+                             'simulated second and the difference from exact (or accurate '
+                             'where exact does not apply) at the end')
     parser.add_argument('--accuracy', help='preset (fast, balanced, accurate, exact) or a '
                         'YAML/JSON mapping such as "{preset: fast, substeps: 2}"; '
                         'overrides the scene\'s accuracy')
@@ -107,7 +145,8 @@ def particle_records(world: World) -> list[dict]:
 
 
 def run(world: World, steps: int, show_progress: bool = True,
-        stop: Optional['_StopRequest'] = None) -> tuple[float, World]:
+        stop: Optional['_StopRequest'] = None,
+        after_step: Optional[Callable[[], None]] = None) -> tuple[float, World]:
     """Step ``world`` ``steps`` times; return the wall-clock seconds and the world to report.
 
     The steps run on a worker thread (the kernels release the GIL), so the
@@ -117,10 +156,11 @@ def run(world: World, steps: int, show_progress: bool = True,
     at the last completed step the worker kept: that copy is returned
     instead of ``world`` (a step is never cut in half in what is reported;
     the abandoned one goes on in the background until the process ends).
-    An exception of a step is raised here.
+    ``after_step`` is called after each step, on the worker thread, never
+    once the run was abandoned. An exception of a step is raised here.
     """
     start = time.perf_counter()
-    worker = _Worker(world, steps, stop)
+    worker = _Worker(world, steps, stop, after_step)
     worker.start()
     reported = world
     with tqdm(total=steps, unit='step', delay=PROGRESS_DELAY_S, file=sys.stderr,
@@ -149,9 +189,10 @@ class _Worker(threading.Thread):
     are not copied for (they end within the grace); the initial state is.
     """
 
-    def __init__(self, world: World, steps: int, stop: Optional[Callable[[], bool]]) -> None:
+    def __init__(self, world: World, steps: int, stop: Optional[Callable[[], bool]],
+                 after_step: Optional[Callable[[], None]]) -> None:
         super().__init__(name='simulate steps', daemon=True)
-        self.world, self.steps, self.stop = world, steps, stop
+        self.world, self.steps, self.stop, self.after_step = world, steps, stop, after_step
         self.done = threading.Event()
         self.error: Optional[BaseException] = None
         self._kept: Optional[World] = None
@@ -174,6 +215,11 @@ class _Worker(threading.Thread):
                 began = time.perf_counter()
                 world.step()
                 slow = time.perf_counter() - began > SNAPSHOT_AFTER_S
+                if self.after_step is not None:
+                    with self._lock:
+                        if self._abandoned:
+                            break
+                        self.after_step()
         except BaseException as error:  # noqa: B902 - raised again in the caller's thread
             self.error = error
         finally:
@@ -196,20 +242,32 @@ def completed_copy(world: World) -> World:
     return kept
 
 
-def check_out(out: str) -> None:
-    """Refuse an ``--out`` target that cannot be written, before any step is run.
+def _calls(*hooks: Optional[Callable[[], None]]) -> Optional[Callable[[], None]]:
+    """Return one hook that calls every given one in order (None when none is given)."""
+    given = [hook for hook in hooks if hook is not None]
+    if len(given) <= 1:
+        return given[0] if given else None
+
+    def every() -> None:
+        for hook in given:
+            hook()
+    return every
+
+
+def check_out(out: str, flag: str = '--out') -> None:
+    """Refuse a ``flag`` target (``--out``) that cannot be written, before any step is run.
 
     A device that fails only when written to (``/dev/full``) can only be
     found at the end; :func:`main` reports that after the summary.
     """
     if out == '':
-        raise UsageError('--out: empty file name')
+        raise UsageError(f'{flag}: empty file name')
     path = Path(out)
     if path.is_dir():
-        raise UsageError(f'--out {out}: Is a directory')
+        raise UsageError(f'{flag} {out}: Is a directory')
     parent = path.parent
     if not parent.is_dir():
-        raise UsageError(f'--out {out}: No such file or directory ({parent} is not a '
+        raise UsageError(f'{flag} {out}: No such file or directory ({parent} is not a '
                          'directory)')
     # Try it rather than ask os.access (which says yes to root everywhere):
     # append to an existing file (no truncation), or create and remove.
@@ -220,7 +278,66 @@ def check_out(out: str) -> None:
         if not existed:
             path.unlink()
     except OSError as error:
-        raise UsageError(f'--out {out}: {error.strerror}') from None
+        raise UsageError(f'{flag} {out}: {error.strerror}') from None
+
+
+def check_pictures(args: argparse.Namespace) -> None:
+    """Refuse ``--snapshot``/``--energy-plot`` targets before the run, like ``--out``.
+
+    Also refused: a suffix matplotlib cannot write, and one file named by
+    two outputs (the second would overwrite the first).
+    """
+    asked = (('--snapshot', args.snapshot), ('--energy-plot', args.energy_plot))
+    pictures = [(flag, value) for flag, value in asked if value is not None]
+    if not pictures:
+        return
+    from .pictures import picture_format
+    for flag, value in pictures:
+        check_out(value, flag)
+        try:
+            picture_format(value)
+        except ValueError as error:
+            raise UsageError(f'{flag} {value}: {error}') from None
+    seen: dict[Path, str] = {}
+    for flag, value in ([('--out', args.out)] if args.out is not None else []) + pictures:
+        key = Path(value).resolve()
+        if key in seen:
+            raise UsageError(f'{flag} {value}: also the file of {seen[key]}')
+        seen[key] = flag
+
+
+def check_record(args: argparse.Namespace) -> None:
+    """Refuse ``--record`` and ``--record-rate`` values that cannot work, before any step."""
+    if args.record_rate is not None:
+        if args.record is None:
+            raise UsageError('--record-rate needs --record PATH')
+        if not (math.isfinite(args.record_rate) and args.record_rate > 0.0):
+            raise UsageError(f'--record-rate must be a finite number > 0, got {args.record_rate}')
+    if args.record is not None:
+        try:
+            from .recording.bag import BagTargetError, check_target
+        except ImportError as error:
+            raise UsageError(f'--record needs {error.name} (pip install -r requirements.txt)'
+                             ) from None
+        try:
+            check_target(args.record)
+        except BagTargetError as error:
+            raise UsageError(f'--record {args.record}: {error}') from None
+
+
+def open_recording(args: argparse.Namespace, world: World) -> Any:
+    """Return the run's recording (:class:`~.recording.offline.RunRecording`), or None."""
+    if args.record is None:
+        return None
+    from .recording.bag import BagTargetError
+    from .recording.definitions import DefinitionError
+    from .recording.offline import DEFAULT_RATE, RunRecording
+    rate = DEFAULT_RATE if args.record_rate is None else args.record_rate
+    try:
+        return RunRecording(args.record, world, rate)
+    except (BagTargetError, DefinitionError, OSError) as error:
+        text = error.strerror if isinstance(error, OSError) and error.strerror else error
+        raise UsageError(f'--record {args.record}: {text}') from None
 
 
 def steps_to_run(args: argparse.Namespace, duration: float, dt: float) -> int:
@@ -285,9 +402,16 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         # Ctrl-C while the scene loads: nothing has run, nothing to keep.
         print('simulate: interrupted before the run started', file=sys.stderr)
         return EXIT_INTERRUPTED
+    except MemoryError as error:
+        # Loading and stepping say where; this is the net for the rest (the
+        # summary or the JSON of a huge world).
+        print(f'simulate: error: {out_of_memory(error, "writing the results")}',
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
 
 
 def _main(argv: Optional[Sequence[str]]) -> int:
+    args = None
     try:
         args = build_parser().parse_args(argv)
         if args.steps is not None and args.steps < 0:
@@ -295,8 +419,12 @@ def _main(argv: Optional[Sequence[str]]) -> int:
         if args.duration is not None and not (math.isfinite(args.duration)
                                               and args.duration >= 0):
             raise UsageError(f'--duration must be a finite number >= 0, got {args.duration}')
+        if args.compare_presets:
+            check_compare(args)
         if args.out is not None:
             check_out(args.out)
+        check_pictures(args)
+        check_record(args)
         scene = load_scene(args.scene)
         if args.accuracy is not None:
             scene = scene.with_accuracy(parse_accuracy_text(args.accuracy, scene.effects,
@@ -309,25 +437,52 @@ def _main(argv: Optional[Sequence[str]]) -> int:
     except (UsageError, SceneError) as error:
         print(f'simulate: error: {error}', file=sys.stderr)
         return EXIT_BAD_INPUT
+    except MemoryError as error:
+        scene_name = getattr(args, 'scene', 'the scene')
+        print(f'simulate: error: {scene_name}: {out_of_memory(error, "loading the scene")}',
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
     if args.explain:
         print(world.explain())
         return 0
+    if args.compare_presets:
+        return run_comparison(args, scene, steps)
+    try:
+        recording = open_recording(args, world)
+    except UsageError as error:
+        print(f'simulate: error: {error}', file=sys.stderr)
+        return EXIT_BAD_INPUT
     start = {'kinetic': world.kinetic_energy(), 'momentum': world.momentum(),
              'energy': world.energy()}
-    # The handlers stay until the JSON is written: a second signal exits at
+    recorder = None
+    if args.energy_plot is not None:
+        from .pictures import EnergyRecorder
+        recorder = EnergyRecorder(world, steps)
+    # The handlers stay until the outputs are written: a second signal exits at
     # once, never leaving half a file (write_result).
     with _StopRequest() as stop:
         try:
-            wall_seconds, reported = run(world, steps, stop=stop)
+            wall_seconds, reported = run(world, steps, stop=stop,
+                                         after_step=_calls(recorder, None if recording is None
+                                                           else recording.after_step))
         except NonFiniteStateError as error:
             print(f'simulate: error: {scene.name}: {error}', file=sys.stderr)
+            if recording is not None:
+                recording.finish()
             return 1
+        except MemoryError as error:
+            doing = f'in step {world.steps + 1} of {steps} ({len(world.state)} particles)'
+            print(f'simulate: error: {scene.name}: {out_of_memory(error, doing)}',
+                  file=sys.stderr)
+            if recording is not None:
+                recording.finish()
+            return EXIT_BAD_INPUT
         abandoned = reported is not world
         if abandoned:
             print(f'simulate: {signal.Signals(stop.signal).name}: step {world.steps + 1} did '
                   f'not end within {STOP_GRACE_S:g} s and was abandoned; reporting the state '
                   f'after step {reported.steps}', file=sys.stderr)
-        code = _report(reported, start, wall_seconds, steps, args, stop)
+        code = _report(reported, start, wall_seconds, steps, args, stop, recording, recorder)
     if abandoned:
         # The abandoned step still runs on its thread and cannot be stopped:
         # end the process here, with everything written and flushed.
@@ -338,9 +493,14 @@ def _main(argv: Optional[Sequence[str]]) -> int:
 
 
 def _report(world: World, start: dict, wall_seconds: float, steps: int,
-            args: argparse.Namespace, stop: '_StopRequest') -> int:
-    """Print the summary of ``world`` and write its JSON; return the exit code."""
+            args: argparse.Namespace, stop: '_StopRequest', recording: Any,
+            recorder: Any) -> int:
+    """Print the summary of ``world`` and write its outputs; return the exit code."""
+    # The bag is finished before the JSON is made: its last frame is the final state.
+    record_error = None if recording is None else recording.finish()
     result = build_result(world, start, wall_seconds)
+    if args.profile:
+        result['profile'] = profile_record(world)
     if stop.signal is not None:
         result['interrupted'] = True
         result['steps_requested'] = steps
@@ -349,7 +509,9 @@ def _report(world: World, start: dict, wall_seconds: float, steps: int,
             print(f'interrupted by {signal.Signals(stop.signal).name} after {world.steps} '
                   f'of {steps} steps')
         print_summary(world, result)
-        sys.stdout.flush()
+    if args.profile:
+        print(world.profile().table())
+    sys.stdout.flush()
     if args.out is not None:
         try:
             write_result(args.out, result, stop)
@@ -357,6 +519,12 @@ def _report(world: World, start: dict, wall_seconds: float, steps: int,
             # Checked before the run; a full disk or /dev/full shows only now.
             print(f'simulate: error: --out {args.out}: {error.strerror}', file=sys.stderr)
             return EXIT_BAD_INPUT
+    pictures_written = write_pictures(args, world, recorder)
+    if record_error is not None:
+        # A full disk mid-run: the run went on, the bag stops where the write failed.
+        print(f'simulate: error: --record {args.record}: {record_error}', file=sys.stderr)
+    if not pictures_written or record_error is not None:
+        return EXIT_BAD_INPUT
     return EXIT_INTERRUPTED if stop.signal is not None else 0
 
 
@@ -392,6 +560,60 @@ def write_result(out: str, result: dict, stop: '_StopRequest') -> None:
             os.unlink(partial)
 
 
+def check_compare(args: argparse.Namespace) -> None:
+    """Refuse options ``--compare-presets`` cannot honour (it runs every preset)."""
+    for flag, value in (('--accuracy', args.accuracy), ('--snapshot', args.snapshot),
+                        ('--energy-plot', args.energy_plot), ('--explain', args.explain),
+                        ('--profile', args.profile)):
+        if value not in (None, False):
+            raise UsageError(f'--compare-presets runs every preset; {flag} cannot be '
+                             'combined with it')
+
+
+def run_comparison(args: argparse.Namespace, scene: Any, steps: int) -> int:
+    """Run ``--compare-presets``: print the table, write ``--out``; return the exit code."""
+    from .preset_compare import compare_presets, json_record, table
+    with _StopRequest() as stop:
+        try:
+            result = compare_presets(scene, steps, stop)
+        except NonFiniteStateError as error:
+            print(f'simulate: error: {scene.name}: {error}', file=sys.stderr)
+            return 1
+        if not args.quiet:
+            print(table(result))
+        sys.stdout.flush()
+        if args.out is not None:
+            try:
+                with open(args.out, 'w', encoding='utf-8') as handle:
+                    json.dump(json_record(result), handle, indent=1)
+            except OSError as error:
+                print(f'simulate: error: --out {args.out}: {error.strerror}', file=sys.stderr)
+                return EXIT_BAD_INPUT
+    return EXIT_INTERRUPTED if result['interrupted'] else 0
+
+
+def write_pictures(args: argparse.Namespace, world: World, recorder: Any) -> bool:
+    """Draw and write the pictures asked for; say whether every one was written."""
+    if args.snapshot is None and recorder is None:
+        return True
+    from .pictures import energy_figure, save_figure, snapshot_figure
+    figures = []
+    if args.snapshot is not None:
+        figures.append(('--snapshot', args.snapshot, lambda: snapshot_figure(world)))
+    if recorder is not None:
+        recorder.finish()
+        figures.append(('--energy-plot', args.energy_plot,
+                        lambda: energy_figure(recorder.series(), world.scene.name)))
+    written = True
+    for flag, path, draw in figures:
+        try:
+            save_figure(draw(), path)
+        except OSError as error:
+            print(f'simulate: error: {flag} {path}: {error.strerror}', file=sys.stderr)
+            written = False
+    return written
+
+
 def build_result(world: World, start: dict, wall_seconds: float) -> dict:
     """Return the JSON document of a run that started from ``start``."""
     return {
@@ -413,6 +635,14 @@ def build_result(world: World, start: dict, wall_seconds: float) -> dict:
             'wall_seconds': wall_seconds,
         },
     }
+
+
+def profile_record(world: World) -> dict:
+    """Return the world's step profile as a JSON-ready mapping (times in ms)."""
+    profile = world.profile()
+    return {'steps': profile.steps, 'first_step_ms': profile.first_step_ms,
+            'ms_per_step': profile.ms_per_step,
+            'stages': [stage._asdict() for stage in profile.stages]}
 
 
 def print_summary(world: World, result: dict) -> None:

@@ -7,6 +7,8 @@ import math
 from builtin_interfaces.msg import Time
 from rosgraph_msgs.msg import Clock
 
+from .cdr import CdrWriter
+
 NANOSECONDS_PER_SECOND = 1_000_000_000
 
 
@@ -22,6 +24,12 @@ def stamp_from_seconds(seconds: float) -> tuple[int, int]:
     return int(sec), int(nanosec)
 
 
+def nanoseconds_from_seconds(seconds: float) -> int:
+    """Return a time in seconds as the integer nanoseconds of its stamp (a bag's log time)."""
+    sec, nanosec = stamp_from_seconds(seconds)
+    return sec * NANOSECONDS_PER_SECOND + nanosec
+
+
 def time_message(seconds: float) -> Time:
     """Return a builtin_interfaces/Time for a time in seconds."""
     sec, nanosec = stamp_from_seconds(seconds)
@@ -31,6 +39,13 @@ def time_message(seconds: float) -> Time:
 def clock_message(seconds: float) -> Clock:
     """Return a rosgraph_msgs/Clock carrying simulated time."""
     return Clock(clock=time_message(seconds))
+
+
+def clock_bytes(seconds: float) -> bytes:
+    """Return a serialised rosgraph_msgs/Clock carrying simulated time, ready to publish."""
+    writer = CdrWriter()
+    writer.stamp(*stamp_from_seconds(seconds))
+    return writer.bytes()
 
 
 def seconds_from_stamp(stamp: Time) -> float:

@@ -11,9 +11,10 @@ none of these (its console scripts land in ``PREFIX/bin``), so this script
 adds them:
 
 - the ament index marker (an empty file, as colcon writes it);
-- ``share/collision_node/package.xml`` and ``share/collision_node/scenes``
-  as symlinks into the checkout (as ``colcon build --symlink-install``), so
-  an edited scene or manifest is what the prefix serves;
+- ``share/collision_node/package.xml``, ``share/collision_node/scenes`` and
+  ``share/collision_node/config`` as symlinks into the checkout (as ``colcon
+  build --symlink-install``), so an edited scene, parameters file or manifest
+  is what the prefix serves;
 - one executable per ``console_scripts`` entry of setup.py in
   ``lib/collision_node/``, a launcher that imports the entry point, so it
   runs the checkout's code (the editable install puts the checkout on the
@@ -93,6 +94,7 @@ def register(prefix: Path, source: Path = ROOT, interpreter: str = sys.executabl
     share.mkdir(parents=True, exist_ok=True)
     _replace_with_symlink(share / 'package.xml', source / 'package.xml')
     _replace_with_symlink(share / 'scenes', source / 'scenes')
+    _replace_with_symlink(share / 'config', source / 'config')
 
     lib = prefix / 'lib' / PACKAGE
     lib.mkdir(parents=True, exist_ok=True)

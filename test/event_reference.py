@@ -1,13 +1,12 @@
-"""The Python event loop the compiled one replaced, kept as the tests' reference.
+"""A Python event loop for the exact preset, the tests' reference for the compiled one.
 
-This is ``collision_node/physics/stages/event_driven.py`` as it was before
-its loop moved into ``collision_node/physics/event_kernels.py``: a
-``heapq`` of (time, seq, kind, p, q, stamps) tuples, a dict of cell sets,
-vectorised predictions. ``test/test_event_kernels.py`` runs it and the
-compiled stage on the same worlds and asserts the same impacts at the same
-times to round-off (the compiled loop predicts on another schedule, see
-its module doc). The cell size is a parameter here (the stage's default was
-``PARTICLES_PER_CELL`` = 8 per cell) so both can be run on the same grid.
+A ``heapq`` of (time, seq, kind, p, q, stamps) tuples, a dict of cell sets
+and vectorised predictions with the numpy contact law: the same rules as
+``collision_node/physics/stages/events/event_driven.py``, written the plain
+way. ``test/test_event_kernels.py`` runs it and the compiled stage on the
+same worlds and asserts the same impacts at the same times to round-off
+(the compiled loop predicts on another schedule, see its module doc). The
+cell size is a parameter so that both can be run on the same grid.
 """
 
 from __future__ import annotations
@@ -18,30 +17,24 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from collision_node.physics.accuracy import (AccuracySettings, check_event_mode,
-                                             EVENT_FALLBACK, MIN_EVENT_BUDGET, PRESETS)
-from collision_node.physics.contact_law import (apply_pair_impulses, apply_wall_impulses,
-                                                pair_coefficient, record_pairs, record_walls,
-                                                thresholded, wall_coefficient)
-from collision_node.physics.effects import Effects
-from collision_node.physics.paths import entering_time
-from collision_node.physics.step import Pipeline, Stage, StepContext
-from collision_node.physics.state import ParticleState
-from collision_node.physics.stages.narrowphase import line_of_action
-from collision_node.physics.stages.swept_contacts import pair_impact_times
+from collision_node.physics.model.accuracy import (AccuracySettings, check_event_mode,
+                                                   EVENT_FALLBACK, MIN_EVENT_BUDGET, PRESETS)
+from collision_node.physics.law.contact_law import (apply_pair_impulses, apply_wall_impulses,
+                                                    pair_coefficient, record_pairs, record_walls,
+                                                    thresholded, wall_coefficient)
+from collision_node.physics.model.effects import Effects
+from collision_node.physics.law.paths import entering_time
+from collision_node.physics.step.pipeline import Pipeline, Stage, StepContext
+from collision_node.physics.model.state import ParticleState
+from collision_node.physics.model.tunables import MAX_FALLBACK_HOLD, PARTICLES_PER_CELL
+from collision_node.physics.stages.detection.narrowphase import line_of_action
+from swept_reference import pair_impact_times
 
 PAIR, WALL, CELL = 0, 1, 2
 
 
 class NotExactable(Exception):
     """An event the TC model would have to alter under gravity: resting contact."""
-
-
-# Cells hold about this many particles: fewer means more cell crossings,
-# more means longer candidate lists per prediction.
-PARTICLES_PER_CELL = 8.0
-# Steps in a row that go straight to the step solver after fallbacks, at most.
-MAX_FALLBACK_HOLD = 63
 
 
 class PythonEventStage(Stage):

@@ -7,13 +7,13 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from collision_node import SceneError, World, load_scene, parse_scene
-from collision_node.physics.accuracy import (PRESETS, AccuracySettings, check_event_mode,
-                                             parse_accuracy)
-from collision_node.physics.reference import missed_collisions
-from collision_node.physics.effects import Effects
+from collision_node import SceneError, World, load_scene, parse_scene, scenarios
+from collision_node.physics.model.accuracy import (PRESETS, AccuracySettings, check_event_mode,
+                                                   parse_accuracy)
+from collision_node.physics.step.reference import missed_collisions
+from collision_node.physics.model.effects import Effects
 from collision_node.simulate import main as simulate_main
-from collision_node.physics.stages.broadphase import ALL_PAIRS_UP_TO
+from collision_node.physics.stages.detection.broadphase import ALL_PAIRS_UP_TO
 from lecture_reference import lecture_update
 
 
@@ -24,13 +24,9 @@ def world(accuracy, **scene) -> World:
 
 def gas(count, radius, speed, dt, seed=3, size=1.0, dimensions=3, restitution=None):
     """Return an inline gas-in-a-box scene mapping."""
-    box = {'min': [0.0] * dimensions, 'max': [size] * dimensions}
-    effects = {'walls': box}
-    if restitution is not None:
-        effects['restitution'] = restitution
-    return dict(dimensions=dimensions, dt=dt, effects=effects,
-                generate=[{'kind': 'gas', 'count': count, 'radius': radius, 'mass': 1.0,
-                           'speed': speed, 'seed': seed, 'region': box}])
+    return scenarios.gas(count, radius, speed, seed=seed, high=size, dimensions=dimensions,
+                         effects=None if restitution is None else {'restitution': restitution},
+                         dt=dt)
 
 
 # -- settings ---------------------------------------------------------------
@@ -155,8 +151,7 @@ def test_exact_head_on_matches_lecture(m1, m2):
 
 @pytest.mark.parametrize('preset', ['exact', 'balanced', 'accurate', 'fast'])
 def test_cradle_ends_at_last_ball_moving(preset):
-    balls = [{'position': [float(k), 0], 'radius': 0.5, 'mass': 1.0} for k in range(5)]
-    balls[0] = {'position': [-0.5, 0], 'velocity': [1.5, 0], 'radius': 0.5, 'mass': 1.0}
+    balls = scenarios.cradle(5, 0.5, 1.0, 1.5, -0.5, first=1, dimensions=2)
     w = world(preset, dimensions=2, dt=0.01, particles=balls)
     w.step(100)
     np.testing.assert_allclose(w.state.velocity[:, 0], [0, 0, 0, 0, 1.5], atol=1e-15)

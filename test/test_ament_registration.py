@@ -25,6 +25,9 @@ from std_msgs.msg import String
 
 from node_harness import Probe, start, stop, STATUS_QOS, unique_domain_id
 
+# Starts ROS processes or tests a ROS front end: `-m "not ros"` leaves it out.
+pytestmark = pytest.mark.ros
+
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGE = 'collision_node'
 EXECUTABLES = ('collision_node', 'simulate', 'viewer')
@@ -74,6 +77,8 @@ def test_registration_is_what_ros2_run_and_ros2_pkg_look_up(prefix):
     assert '<name>collision_node</name>' in (share / 'package.xml').read_text()
     assert (share / 'scenes' / 'oblique_pair.yaml').read_text() == \
         (ROOT / 'scenes' / 'oblique_pair.yaml').read_text()
+    assert (share / 'config' / 'collision_node.yaml').read_text() == \
+        (ROOT / 'config' / 'collision_node.yaml').read_text()
     for name in EXECUTABLES:
         text = resolve(name).read_text()
         assert text.startswith(f'#!{sys.executable}\n'), text

@@ -114,7 +114,7 @@ def test_mixed_bench_places_without_overlap_and_searches_exactly(capsys):
 
 
 def test_apex_error_of_the_analytic_bounce_sequence():
-    from collision_node.bench.accuracy import BALL_RESTITUTION, apex_error
+    from collision_node.bench.accuracy_ladder import BALL_RESTITUTION, apex_error
     g, track = 9.81, [(1.1, 0.0)]
     for k in range(1, 7):
         # Just after the k-th bounce: 2 cm up, moving up toward the apex e^(2k) h.
@@ -129,7 +129,7 @@ def test_apex_error_of_the_analytic_bounce_sequence():
 
 
 def test_accuracy_scenes_include_the_gravity_scenes():
-    from collision_node.bench.accuracy import plan, scenes
+    from collision_node.bench.accuracy_ladder import plan, scenes
     quick = scenes(quick=True)
     assert quick['bouncing_ball']['effects']['gravity'] == [0.0, -9.81]
     assert quick['pile']['effects']['friction'] == 0.5 and quick['pile']['duration'] == 2.0

@@ -13,8 +13,11 @@ from std_msgs.msg import String
 from collision_node import bench
 from collision_node.bench import node_load
 from collision_node.physics import parse_scene_text
-from collision_node.physics.scene import parse_spawn
-from collision_node.physics.validation import SceneError
+from collision_node.physics.model.scene import parse_spawn
+from collision_node.physics.model.validation import SceneError
+
+# Starts ROS processes or tests a ROS front end: `-m "not ros"` leaves it out.
+pytestmark = pytest.mark.ros
 
 
 def test_registered_as_a_subcommand():

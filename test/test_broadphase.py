@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from collision_node import World, parse_scene
-from collision_node.physics import grid_kernels
-from collision_node.physics.step import Stage, StepContext
-from collision_node.physics.stages import broadphase as broadphase_module
-from collision_node.physics.stages.broadphase import BroadphaseStage, candidate_pairs
+from collision_node.physics.stages.detection import grid_kernels
+from collision_node.physics.step.pipeline import Stage, StepContext
+from collision_node.physics.stages.detection import broadphase as broadphase_module
+from collision_node.physics.stages.detection.broadphase import BroadphaseStage, candidate_pairs
 
 
 def brute_force_overlaps(position: np.ndarray, radius: np.ndarray) -> set:

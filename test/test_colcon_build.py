@@ -1,9 +1,9 @@
-"""The README's colcon recipe builds the package; every executable resolves as ``ros2 run`` does.
+"""The manual's colcon recipe builds the package; every executable resolves as ``ros2 run`` does.
 
 ``ros2 run PKG EXE`` looks up the package prefix in the ament index
 (``ament_index_python.get_package_prefix``, searching AMENT_PREFIX_PATH)
 and runs the executable file ``<prefix>/lib/PKG/EXE``. This test runs the
-README's recipe for the venv's colcon exactly as written (the repository
+recipe of docs/install.md for the venv's colcon exactly as written (the repository
 cloned into ``~/ws/src/``, ``colcon build``, ``. install/setup.sh``) with
 HOME in a temporary directory, takes the environment the setup script
 leaves, resolves every console script declared in setup.py that way and
@@ -22,11 +22,16 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from ament_index_python.packages import get_package_prefix, get_package_share_directory
+
+# Starts ROS processes or tests a ROS front end: `-m "not ros"` leaves it out.
+pytestmark = pytest.mark.ros
 
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGE = 'collision_node'
 RECIPE_LEAD = 'runs exactly this block'
+INSTALL_PAGE = 'docs/install.md'
 ENV_MARK = '--- environment after the recipe ---\n'
 
 
@@ -40,17 +45,17 @@ def declared_console_scripts() -> list[str]:
     raise AssertionError('setup.py declares no entry_points')
 
 
-def readme_recipe() -> str:
-    """Return the README's colcon recipe for the venv (the bash block after RECIPE_LEAD)."""
-    readme = (ROOT / 'README.md').read_text()
-    found = re.search(re.escape(RECIPE_LEAD) + r'.*?```bash\n(.*?)```', readme, re.DOTALL)
-    assert found, f'README.md: no bash block after "{RECIPE_LEAD}"'
+def install_recipe() -> str:
+    """Return the manual's colcon recipe for the venv (the bash block after RECIPE_LEAD)."""
+    page = (ROOT / INSTALL_PAGE).read_text()
+    found = re.search(re.escape(RECIPE_LEAD) + r'.*?```bash\n(.*?)```', page, re.DOTALL)
+    assert found, f'{INSTALL_PAGE}: no bash block after "{RECIPE_LEAD}"'
     return found.group(1)
 
 
 def run_recipe(home: Path) -> dict:
     """Run the recipe from the checkout with HOME = ``home``; return the environment it leaves."""
-    script = 'set -eo pipefail\n' + readme_recipe() + f"printf '\\n{ENV_MARK}'; env -0\n"
+    script = 'set -eo pipefail\n' + install_recipe() + f"printf '\\n{ENV_MARK}'; env -0\n"
     env = {**os.environ, 'HOME': str(home)}
     done = subprocess.run(['bash', '-c', script], cwd=ROOT, env=env, capture_output=True,
                           timeout=300)
@@ -60,7 +65,7 @@ def run_recipe(home: Path) -> dict:
 
 
 def test_recipe_is_the_repository_in_src_and_builds_without_selection_or_bash():
-    recipe = readme_recipe()
+    recipe = install_recipe()
     assert 'git clone "$PWD" ~/ws/src/collision_node' in recipe
     assert 'colcon build\n' in recipe and '. install/setup.sh' in recipe
 
@@ -78,6 +83,9 @@ def test_colcon_build_then_ros2_run_resolution(tmp_path, monkeypatch):
     assert Path(get_package_prefix(PACKAGE)).resolve() == prefix.resolve()
     share = Path(get_package_share_directory(PACKAGE))
     assert '<name>collision_node</name>' in (share / 'package.xml').read_text()
+    # The parameters file is installed where --params-file $(ros2 pkg prefix ...) finds it.
+    assert (share / 'config' / 'collision_node.yaml').read_text() == \
+        (ROOT / 'config' / 'collision_node.yaml').read_text()
     executables = declared_console_scripts()
     assert sorted(executables) == ['collision_node', 'simulate', 'viewer']
     for name in executables:
@@ -94,7 +102,7 @@ def test_colcon_build_then_ros2_run_resolution(tmp_path, monkeypatch):
     run_dir = tmp_path / 'elsewhere'
     run_dir.mkdir()
     probe = subprocess.run(
-        [sys.executable, '-c', 'import collision_node, collision_node.physics.scene as s; '
+        [sys.executable, '-c', 'import collision_node, collision_node.physics.model.scene as s; '
          'print(collision_node.__file__); print(s.resolve_scene_path("cradle"))'],
         cwd=run_dir, env=env, capture_output=True, text=True, timeout=60)
     module_file, scene_file = probe.stdout.split()

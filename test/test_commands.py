@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 
 from collision_node import World, load_scene, parse_scene_text
-from collision_node.physics.commands import (MAX_STEPS, delete_request, find_overlap,
-                                             id_ranges, impulse_request, parse_ids,
-                                             parse_request, request_id_of, spawn_request,
-                                             step_count, take_options, teleport_request)
-from collision_node.physics.validation import SceneError
+from collision_node.physics.model.world_commands import (MAX_STEPS, delete_request, find_overlap,
+                                                         id_ranges, impulse_request, parse_ids,
+                                                         parse_request, request_id_of,
+                                                         spawn_request, step_count, take_options,
+                                                         teleport_request)
+from collision_node.physics.model.validation import SceneError
 
 TABLE = ('name: table\ndimensions: 2\ndt: 0.01\n'
          'effects: {walls: {min: [-1.25, -0.65], max: [1.25, 0.65]}}\n'

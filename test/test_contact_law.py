@@ -1,6 +1,6 @@
 """One contact law for every preset: the same isolated impact has the same outcome everywhere.
 
-Each case runs under every preset in ``collision_node.physics.accuracy.PRESETS`` the
+Each case runs under every preset in ``collision_node.physics.model.accuracy.PRESETS`` the
 scene's effects allow (``exact`` refuses friction) and asserts the analytic
 velocities after the impact and the energy booked for it. Also: impacts are
 recorded with the lecture's impulse, and the separation stage budgets a lift
@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from collision_node import World, parse_scene
-from collision_node.physics.accuracy import PRESETS
-from collision_node.physics.impacts import WALL
+from collision_node.physics.model.accuracy import PRESETS
+from collision_node.physics.model.impacts import WALL
 
 G = 9.81
 ALL = sorted(PRESETS)

@@ -1,24 +1,24 @@
 """The contact solve's set-up, compiled (``contact_kernels.solve_step``), against numpy.
 
-The kernel backend finds the wall contacts and keeps the warm start's
-contact cache inside its one compiled call per step. Here: it finds the
-same particles on each wall plane as the numpy set-up (``_wall_contacts``),
-and the cache it keeps is sorted by key, decodes to the pairs' ids, and
-is found again by the numpy look-up (``ContactCache.lookup``).
+The compiled solve finds the wall contacts and keeps the warm start's
+contact cache inside its one call per step. Here: it finds the same
+particles on each wall plane as the numpy set-up
+(``solve_reference.reference_wall_contacts``), and the cache it keeps is
+sorted by key, decodes to the pairs' ids, and is found again by the numpy
+look-up (``solve_reference.lookup``).
 """
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import numpy as np
 
 from collision_node import World
-from collision_node.physics.accuracy import PRESETS
-from collision_node.physics.contact_kernels import find_wall_contacts
-from collision_node.physics.scene import load_scene
-from collision_node.physics.stages.sequential_impulses import (SequentialImpulseStage,
-                                                               WALL_SLOP)
+from collision_node.physics.model.accuracy import PRESETS
+from collision_node.physics.stages.solve.contact_kernels import find_wall_contacts
+from collision_node.physics.model.scene import load_scene
+from collision_node.physics.model.tunables import WALL_SLOP
+from collision_node.physics.stages.solve.sequential_impulses import SequentialImpulseStage
+from solve_reference import lookup, reference_wall_contacts
 
 
 def solver_of(world: World) -> SequentialImpulseStage:
@@ -37,9 +37,9 @@ def settled_pile(steps: int = 200) -> World:
 def test_compiled_wall_contacts_are_the_numpy_ones():
     world = settled_pile()
     solver, s = solver_of(world), world.state
-    expected = solver._wall_contacts(SimpleNamespace(state=s, dimensions=2), 0.1, False)
+    expected = reference_wall_contacts(solver, s, 2, 0.1, False)
     start, index, axis, inward = find_wall_contacts(
-        s.position, s.radius, s.dynamic, *solver._planes(2), WALL_SLOP)
+        s.position, s.radius, s.dynamic, solver._planes(2), WALL_SLOP)
     planes = solver.walls.planes(2)
     assert start.size == len(planes) + 1
     found = {}
@@ -67,8 +67,8 @@ def test_compiled_cache_is_sorted_and_found_by_the_numpy_lookup():
     i = np.array([row[int(b)] for b in cache.hi])
     j = np.array([row[int(a)] for a in cache.lo])
     w_index = np.array([row[int(k) // 8] for k in cache.wall_key])
-    normal, tangential, wall_normal, wall_tangential = cache.lookup(
-        s.ids, i, j, w_index, cache.wall_key % 8)
+    normal, tangential, wall_normal, wall_tangential = lookup(
+        cache, s.ids, i, j, w_index, cache.wall_key % 8)
     np.testing.assert_array_equal(normal, cache.normal)
     np.testing.assert_array_equal(tangential, -cache.tangential)
     np.testing.assert_array_equal(wall_normal, cache.wall_normal)

@@ -124,9 +124,9 @@ def test_physics_and_its_runner_import_no_ros_module():
     assert done.returncode == 0, done.stderr
     report = json.loads(done.stdout.splitlines()[-1])
     # The probe really walked the physics: the stages, the plan and the world are in it.
-    assert {'collision_node.physics.scene', 'collision_node.physics.plan',
-            'collision_node.physics.stages.broadphase',
-            'collision_node.physics.world'} <= set(report['physics'])
+    assert {'collision_node.physics.model.scene', 'collision_node.physics.step.plan',
+            'collision_node.physics.stages.detection.broadphase',
+            'collision_node.physics.step.world'} <= set(report['physics'])
     assert report['ros'] == []
     # Nor did the physics or the runner pull in the ROS front ends or the benchmarks.
     assert not [m for m in report['package']
@@ -145,7 +145,7 @@ def test_physics_imports_nothing_outside_itself():
 
 def test_no_import_circle_in_the_package():
     graph = import_graph()
-    assert 'collision_node.physics.plan' in graph['collision_node.physics.world']
+    assert 'collision_node.physics.step.plan' in graph['collision_node.physics.step.world']
     assert cycles(graph) == []
 
 
@@ -153,10 +153,10 @@ def test_the_circle_check_would_see_a_circle():
     # Guard against a check that cannot fail.
     assert cycles({'a': {'b'}, 'b': {'c'}, 'c': {'a'}, 'd': {'a'}}) == [['a', 'b', 'c']]
     graph = import_graph()
-    graph['collision_node.physics.step'].add('collision_node.physics.plan')
-    assert ['collision_node.physics.plan', 'collision_node.physics.step'] in [
-        [m for m in part if m in ('collision_node.physics.plan', 'collision_node.physics.step')]
-        for part in cycles(graph)]
+    pipeline, plan = 'collision_node.physics.step.pipeline', 'collision_node.physics.step.plan'
+    graph[pipeline].add(plan)
+    assert [pipeline, plan] in [[m for m in part if m in (pipeline, plan)]
+                                for part in cycles(graph)]
 
 
 def test_the_probe_would_see_a_ros_module():
@@ -166,3 +166,62 @@ def test_the_probe_would_see_a_ros_module():
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert 'rclpy' in done.stdout
+
+
+def test_no_two_modules_share_a_name():
+    names: dict[str, list[str]] = {}
+    for path in PACKAGE.rglob('*.py'):
+        if path.name not in ('__init__.py', '__main__.py'):
+            names.setdefault(path.stem, []).append(str(path.relative_to(ROOT)))
+    assert {stem: paths for stem, paths in names.items() if len(paths) > 1} == {}
+    assert 'world' in names and 'broadphase' in names
+
+
+def test_no_folder_holds_more_than_fifteen_modules():
+    folders = {path.parent for path in PACKAGE.rglob('*.py')}
+    crowded = {str(folder.relative_to(ROOT)): count for folder in folders
+               if (count := len([p for p in folder.glob('*.py')
+                                 if p.name != '__init__.py'])) > 15}
+    assert crowded == {}
+    assert len(folders) > 10
+
+
+def module_constants(path: Path) -> set[str]:
+    """Return the public UPPER_CASE names a module assigns at its top level."""
+    names = set()
+    for node in ast.parse(path.read_text()).body:
+        targets = node.targets if isinstance(node, ast.Assign) else (
+            [node.target] if isinstance(node, ast.AnnAssign) else [])
+        for target in targets:
+            for leaf in ast.walk(target):
+                if isinstance(leaf, ast.Name) and leaf.id.isupper() and leaf.id[0] != '_':
+                    names.add(leaf.id)
+    return names
+
+
+def test_no_physics_constant_is_defined_in_two_modules():
+    owners: dict[str, list[str]] = {}
+    for path in (PACKAGE / 'physics').rglob('*.py'):
+        for name in module_constants(path):
+            owners.setdefault(name, []).append(str(path.relative_to(ROOT)))
+    assert 'STRIKE_FACTOR' in owners and 'SPIN_FACTOR' in owners
+    assert {name: paths for name, paths in owners.items() if len(paths) > 1} == {}
+
+
+def parameter_count(function: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    """Return how many parameters a function takes (self and cls not counted)."""
+    args = function.args
+    count = len(args.posonlyargs) + len(args.args) + len(args.kwonlyargs)
+    count += (args.vararg is not None) + (args.kwarg is not None)
+    return count - (1 if args.args and args.args[0].arg in ('self', 'cls') else 0)
+
+
+def test_no_function_takes_more_than_twelve_parameters():
+    crowded = []
+    for path in PACKAGE.rglob('*.py'):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) \
+                    and parameter_count(node) > 12:
+                crowded.append(f'{path.relative_to(ROOT)}:{node.name}')
+    assert crowded == []
+    assert parameter_count(ast.parse('def f(self, a, *b, c, **d): pass').body[0]) == 4

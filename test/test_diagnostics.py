@@ -8,11 +8,14 @@ import pytest
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus
 
-from collision_node.physics.scene import load_scene
-from collision_node.physics.world import World
+from collision_node.physics.model.scene import load_scene
+from collision_node.physics.step.world import World
 from collision_node.ros.diagnostics import (BALANCE_TOLERANCE, diagnostic_array,
                                             diagnostic_status, relative_balance_error)
 from collision_node.ros.status import status_report
+
+# Starts ROS processes or tests a ROS front end: `-m "not ros"` leaves it out.
+pytestmark = pytest.mark.ros
 
 
 def world_status(**overrides) -> dict:

@@ -1,4 +1,4 @@
-"""The compiled event loop of the exact preset (``physics/event_kernels.py``).
+"""The compiled event loop of the exact preset (``physics/stages/events/event_kernels.py``).
 
 Against closed-form impact times, and against the Python loop it replaced
 (``test/event_reference.py``) on random gases: the same impacts between the
@@ -21,9 +21,9 @@ import math
 import numpy as np
 import pytest
 
-from collision_node.physics import event_kernels as ek
-from collision_node.physics.scene import parse_scene
-from collision_node.physics.world import World
+from collision_node.physics.stages.events import event_kernels as ek
+from collision_node.physics.model.scene import parse_scene
+from collision_node.physics.step.world import World
 from event_reference import PythonEventStage
 
 
@@ -204,7 +204,7 @@ def test_a_state_changed_between_steps_is_predicted_afresh(field):
     w.step(2)
     stage = w.pipeline.stages[0]
     assert stage._still_valid(w.state)
-    moved = np.flatnonzero(stage.perm != np.arange(len(w.state)))
+    moved = np.flatnonzero(stage.order != np.arange(len(w.state)))
     assert moved.size > 100                   # the cell order is not the world's
     for k in moved[::20]:
         values = getattr(w.state, field)
@@ -231,22 +231,22 @@ def test_heap_keeps_the_earliest_particle_on_top_as_keys_change():
     """Keys rise and fall (many ties): the top is always the least (time, index)."""
     rng = np.random.default_rng(2)
     n = 300
-    clock, _, _, _, heap_key, heap_int = ek.new_arrays(n)
-    clock[:, ek.C_KEY] = rng.integers(0, 50, n).astype(float)
-    ek.heapify(clock, heap_key, heap_int)
+    schedule, heap = ek.new_schedule(n, 0.0), ek.new_heap(n)
+    schedule['next_time'] = rng.integers(0, 50, n).astype(float)
+    ek.heapify(heap, schedule)
     for _ in range(2000):
         p = int(rng.integers(n))
-        clock[p, ek.C_KEY] = float(rng.integers(0, 50)) if rng.random() < 0.9 else math.inf
-        ek.heap_update(clock, heap_key, heap_int, p)
-        order = heap_int[0]
-        np.testing.assert_array_equal(heap_int[1, order], np.arange(n))
-        keys = clock[order, ek.C_KEY]
-        np.testing.assert_array_equal(heap_key, keys)
+        schedule['next_time'][p] = float(rng.integers(0, 50)) if rng.random() < 0.9 else math.inf
+        ek.heap_update(heap, schedule, p)
+        order = heap.particle
+        np.testing.assert_array_equal(heap.slot[order], np.arange(n))
+        keys = schedule['next_time'][order]
+        np.testing.assert_array_equal(heap.key, keys)
         children = np.arange(1, n)
         parents = (children - 1) // 2
         assert np.all((keys[parents] < keys[children])
                       | ((keys[parents] == keys[children]) & (order[parents] < order[children])))
-        top = min(range(n), key=lambda k: (clock[k, ek.C_KEY], k))
+        top = min(range(n), key=lambda k: (schedule['next_time'][k], k))
         assert order[0] == top
 
 
@@ -289,6 +289,6 @@ def test_a_crowded_particle_refreshes_and_misses_no_impact():
     (0.0, -1.0, 0.0), (0.0, 0.0, -1.0), (-1e-9, 1.0, 0.0), (math.inf, -1.0, -9.81),
     (1e-300, -1e-300, 0.0)])
 def test_entering_time_is_the_paths_module_s(gap, rate, curvature):
-    from collision_node.physics.paths import entering_time
+    from collision_node.physics.law.paths import entering_time
     expected = entering_time(np.array([gap]), np.array([rate]), np.array([curvature]))[0]
     assert ek.entering(gap, rate, curvature) == expected

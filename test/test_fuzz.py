@@ -39,7 +39,7 @@ import pytest
 from hypothesis import assume, event, example, given, strategies as st
 
 from collision_node import World, parse_scene
-from collision_node.physics.accuracy import PRESETS
+from collision_node.physics.model.accuracy import PRESETS
 from conftest import HYPOTHESIS_PROFILE
 from test_hard_cases import max_penetration
 

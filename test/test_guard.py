@@ -17,11 +17,11 @@ import pytest
 import yaml
 
 from collision_node import SceneError, World, load_scene, parse_scene, parse_spawn
-from collision_node.physics.accuracy import PRESETS, parse_accuracy_text
-from collision_node.physics.effects import Effects
-from collision_node.physics.guard import MAX_DEPTH, MAX_TEXT_BYTES, parse_text
-from collision_node.physics.scene import parse_scene_text
-from collision_node.physics.validation import MAX_QUOTE, quote
+from collision_node.physics.model.accuracy import PRESETS, parse_accuracy_text
+from collision_node.physics.model.effects import Effects
+from collision_node.physics.model.guard import MAX_DEPTH, MAX_TEXT_BYTES, parse_text
+from collision_node.physics.model.scene import parse_scene_text
+from collision_node.physics.model.validation import MAX_QUOTE, quote
 
 GOOD = [{'position': [-2.0, 0.0, 0.0], 'velocity': [1.0, 0.0, 0.0], 'radius': 0.5, 'mass': 1.0},
         {'position': [2.0, 0.0, 0.0], 'radius': 0.5, 'mass': 2.0}]

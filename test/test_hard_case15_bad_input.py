@@ -17,7 +17,7 @@ import pytest
 import yaml
 
 from collision_node import SceneError, World, load_scene, parse_scene, parse_spawn
-from collision_node.physics.accuracy import PRESETS
+from collision_node.physics.model.accuracy import PRESETS
 
 NAN, INF = math.nan, math.inf
 GOOD = [{'position': [-2.0, 0.0, 0.0], 'velocity': [1.0, 0.0, 0.0], 'radius': 0.5, 'mass': 1.0},

@@ -1,6 +1,6 @@
 """The hard cases that break collision code, one named test per case (issue 6).
 
-Every test runs once per accuracy preset in ``collision_node.physics.accuracy.PRESETS``
+Every test runs once per accuracy preset in ``collision_node.physics.model.accuracy.PRESETS``
 (new presets join automatically) and asserts analytic values or stated
 bounds; docs/stability.md lists each case with its outcome per preset.
 The long forms (the 1,000,000-step run, the dense cluster settled to the
@@ -14,23 +14,16 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from collision_node import World, parse_scene
-from collision_node.physics.accuracy import PRESETS
-from collision_node.physics.stages.broadphase import candidate_pairs
+from collision_node import World, parse_scene, scenarios
+from collision_node.scenarios import ball
+from collision_node.physics.model.accuracy import PRESETS
+from collision_node.physics.stages.detection.broadphase import candidate_pairs
 
 
 @pytest.fixture(params=sorted(PRESETS))
 def preset(request) -> str:
     """Name of the accuracy preset a case runs under."""
     return request.param
-
-
-def ball(position, radius, mass, velocity=None) -> dict:
-    """Return one particle entry of a scene."""
-    entry = {'position': list(map(float, position)), 'radius': radius, 'mass': mass}
-    if velocity is not None:
-        entry['velocity'] = list(map(float, velocity))
-    return entry
 
 
 # What a preset does, read from its settings. ``mode`` and ``ccd`` arrive with the
@@ -298,8 +291,7 @@ def test_case04_bullet_against_a_wall_always_hits(preset, dt):
 def test_case05_newtons_cradle_momentum_leaves_from_the_far_end(preset, count):
     """The first ball strikes a chain of touching balls; only the last one leaves."""
     radius, spacing = 0.0625, 0.125                   # exact in binary: touching is exact
-    particles = [ball([-0.25, 0, 0], radius, 0.5, [1.0, 0, 0])]
-    particles += [ball([spacing * k, 0, 0], radius, 0.5) for k in range(count - 1)]
+    particles = scenarios.cradle(count, radius, 0.5, 1.0, -0.25)
     world = build(preset, particles, dt=0.001)
     world.step(300 + count)
     v = world.state.velocity
@@ -357,7 +349,7 @@ def assert_no_fallback(world: World) -> None:
     """No step went to the step solver: the event-driven preset held its resting contact.
 
     Under gravity ``exact`` gives each resting particle the constant
-    acceleration its supports leave it (``stages/event_driven.py``,
+    acceleration its supports leave it (``stages/events/event_driven.py``,
     ``resting_kernels``), so a column or a pile at rest takes no step
     solver step; the step presets never fall back.
     """
@@ -379,11 +371,7 @@ def test_case07_resting_column_of_20_never_gains_energy_and_rests(
     supports (no fallback; measured at rest to 2e-15 m/s, overlap 1.5e-14 m).
     """
     radius = 0.05
-    world = build(preset, [ball([0, radius + 2 * radius * k], radius, 1.0, [0, 0])
-                           for k in range(20)],
-                  dimensions=2, dt=1.0 / 240.0,
-                  effects={'gravity': [0, -G], 'walls': {'min': [None, 0.0]},
-                           'restitution': restitution})
+    world = build(preset, **scenarios.resting_column(20, restitution, radius))
     previous = world.energy()['total']
     settles = preset != 'fast'
     fastest_late = 0.0
@@ -437,14 +425,6 @@ def test_case07_ball_landing_on_a_resting_ball_never_gains_energy(preset):
     assert 0.0 <= max_penetration(world) <= 3e-4
 
 
-def hexagonal_pile(radius: float, rows: int, per_row: int) -> list:
-    """Return discs packed in rows, each row resting in the hollows of the one below."""
-    height = np.sqrt(3.0) * radius
-    return [ball([(radius if row % 2 == 0 else 2 * radius) + 2 * radius * k,
-                  radius + height * row], radius, 1.0, [0, 0])
-            for row in range(rows) for k in range(per_row)]
-
-
 # Steps of the 500-disc pile per preset in the fast profile (measured on this
 # pile from its start: `accurate` 40 ms a step, `exact` 29 ms).
 PILE_STEPS = {'fast': 72, 'balanced': 72, 'accurate': 12, 'exact': 72}
@@ -466,11 +446,9 @@ def test_case07_pile_of_500_never_gains_energy_and_does_not_jitter(
     (no fallback; measured 1e-13 m/s, 3e-14 m sideways over 120 steps).
     Fast profile: 72 steps, 12 for `accurate`; deep: 120.
     """
-    radius = 0.05
-    particles = hexagonal_pile(radius, 20, 25)
-    world = build(preset, particles, dimensions=2, dt=1.0 / 240.0,
-                  effects={'gravity': [0, -G], 'restitution': restitution,
-                           'walls': {'min': [0.0, 0.0], 'max': [51 * radius, None]}})
+    scene = scenarios.resting_pile(restitution, 20, 25, radius=0.05)
+    particles = scene['particles']
+    world = build(preset, **scene)
     threshold = 2.0 * G * world.dt
     previous = world.energy()['total']
     steps = 120 if deep_profile else PILE_STEPS.get(preset, 12)
@@ -492,7 +470,7 @@ def test_case07_pile_of_500_never_gains_energy_and_does_not_jitter(
 def supported_bounce(preset: str, column: int, restitution: float) -> float:
     """Drop a ball 0.5 m onto a column of resting balls; return rebound / impact speed."""
     radius, drop = 0.05, 0.5
-    particles = [ball([0, radius + 2 * radius * k], radius, 1.0, [0, 0]) for k in range(column)]
+    particles = scenarios.column(column, radius)
     particles.append(ball([0, 2 * radius * column + radius + drop], radius, 1.0, [0, 0]))
     world = build(preset, particles, dimensions=2, dt=1.0 / 240.0,
                   effects={'gravity': [0, -G], 'restitution': restitution,

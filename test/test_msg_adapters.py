@@ -6,16 +6,17 @@ import numpy as np
 import pytest
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, Pose, PoseArray, VelocityStamped
-from rclpy.serialization import deserialize_message
+from rclpy.serialization import deserialize_message, serialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
 from cdr_check import assert_same_cdr
-from msg_adapters import (body_frame_id, clock_message, particle_id_from_frame,
-                          point_cloud_bytes, poses_from_pose_array, seconds_from_stamp,
-                          stamp_from_seconds, state_from_point_cloud, velocities_bytes)
+from msg_adapters import (body_frame_id, clock_bytes, clock_message, nanoseconds_from_seconds,
+                          particle_id_from_frame, point_cloud_bytes, poses_from_pose_array,
+                          seconds_from_stamp, stamp_from_seconds, state_from_point_cloud,
+                          velocities_bytes)
 from msg_adapters.cdr import CdrWriter
 from msg_adapters.cloud import POINT_STEP, point_cloud_writer
 from msg_adapters.markers import PALETTE, STATIC_COLOUR, marker_array_writer, sphere_groups
@@ -60,6 +61,13 @@ def test_clock_message_carries_simulated_time():
     assert isinstance(msg, Clock)
     assert (msg.clock.sec, msg.clock.nanosec) == (7, 250_000_000)
     assert seconds_from_stamp(msg.clock) == 7.25
+
+
+@pytest.mark.parametrize('seconds', [0.0, 7.25, 1 / 3, 2.9999999999, 86400.000000001])
+def test_clock_bytes_equal_rclpy_serialisation(seconds):
+    assert clock_bytes(seconds) == serialize_message(clock_message(seconds))
+    stamp = deserialize_message(clock_bytes(seconds), Clock).clock
+    assert nanoseconds_from_seconds(seconds) == stamp.sec * 10 ** 9 + stamp.nanosec
 
 
 def test_writer_aligns_float64_after_odd_string():

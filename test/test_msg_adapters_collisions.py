@@ -8,7 +8,7 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import PointCloud2, PointField
 
 from cdr_check import assert_same_cdr
-from collision_node.physics.impacts import IMPACT_DTYPE, ImpactLog, WALL
+from collision_node.physics.model.impacts import IMPACT_DTYPE, ImpactLog, WALL
 from msg_adapters import impact_cloud_bytes, impacts_from_point_cloud, stamp_from_seconds
 from msg_adapters.collisions import impact_cloud_writer, IMPACT_POINT_STEP
 

@@ -21,6 +21,9 @@ from std_srvs.srv import Trigger
 from msg_adapters import state_from_point_cloud
 from node_harness import NodeUnderTest, output
 
+# Starts ROS processes or tests a ROS front end: `-m "not ros"` leaves it out.
+pytestmark = pytest.mark.ros
+
 PARTICLES = 16           # the default scene, scenes/elastic_break.yaml
 CUE_SPEED = 5.0
 MAX_PARTICLES = 40

@@ -10,6 +10,9 @@ import pytest
 
 from node_harness import NodeUnderTest, executable, ros_env, unique_domain_id
 
+# Starts ROS processes or tests a ROS front end: `-m "not ros"` leaves it out.
+pytestmark = pytest.mark.ros
+
 
 def run_viewer(domain_id: int, *args: str) -> subprocess.CompletedProcess:
     """Run the installed viewer to completion on ``domain_id``."""

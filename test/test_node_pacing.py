@@ -8,6 +8,9 @@ from collision_node import load_scene, World
 from collision_node.ros.pacing import came_short, Lag, LAG_WINDOW, Pacer, RateMeter
 from collision_node.ros.parameters import DEFAULT_SCENE, PARAMETERS
 
+# Starts ROS processes or tests a ROS front end: `-m "not ros"` leaves it out.
+pytestmark = pytest.mark.ros
+
 
 def test_steps_due_follow_wall_time_times_factor():
     pacer = Pacer(dt=0.01, factor=1.0, wall=100.0, sim_time=0.0)

@@ -23,13 +23,16 @@ from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 
-from collision_node.physics.impacts import IMPACT_DTYPE
-from collision_node.physics.scene import load_scene
-from collision_node.physics.world import World
+from collision_node.physics.model.impacts import IMPACT_DTYPE
+from collision_node.physics.model.scene import load_scene
+from collision_node.physics.step.world import World
 from collision_node.ros.qos import COLLISIONS_QOS
 from collision_node.ros.reports import Reports
 from msg_adapters import impacts_from_point_cloud, seconds_from_stamp
 from node_harness import executable, NodeUnderTest, ros_env, unique_domain_id
+
+# Starts ROS processes or tests a ROS front end: `-m "not ros"` leaves it out.
+pytestmark = pytest.mark.ros
 
 # Two balls closing at 1 m/s with 4.0005 m between their surfaces: one impact at
 # t = 4.0005 s (inside a step of 1 ms), late enough for a subscriber to be listening.

@@ -22,11 +22,14 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
 
-from collision_node.physics.guard import MAX_TEXT_BYTES
+from collision_node.physics.model.guard import MAX_TEXT_BYTES
 from collision_node.ros.qos import SERVICE_QOS
 from msg_adapters import state_from_point_cloud
 from msg_adapters.strings import string_bytes
 from node_harness import executable, NodeUnderTest, ros_env, unique_domain_id
+
+# Starts ROS processes or tests a ROS front end: `-m "not ros"` leaves it out.
+pytestmark = pytest.mark.ros
 
 PARTICLES = 16
 DT = 1.0 / 240.0

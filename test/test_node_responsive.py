@@ -13,19 +13,15 @@ import statistics
 import time
 
 import pytest
-import rclpy
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
 
-from collision_node.physics.kernels import all_kernels
+from collision_node.physics.step.kernels import all_kernels
 from collision_node.ros.commands import STEP_REQUEST_SECONDS
-from collision_node.ros.node import CollisionNode
 from collision_node.ros.qos import EVENTS_QOS
-from msg_adapters.strings import string_bytes
-from node_harness import NodeUnderTest, unique_domain_id
+from msg_adapters.strings import string_bytes, string_text
+from node_harness import InProcessNode, NodeUnderTest
 
 DT = 1.0 / 240.0
 PARTICLES = 100_000
@@ -175,60 +171,48 @@ class Recorder:
         """Start with nothing published."""
         self.published: list[dict] = []
 
-    def publish(self, message: String) -> None:
-        """Keep the status a message holds."""
-        self.published.append(json.loads(message.data))
+    def publish(self, message) -> None:
+        """Keep the status a message holds (a String, or its serialised bytes)."""
+        text = string_text(message) if isinstance(message, bytes) else message.data
+        self.published.append(json.loads(text))
 
 
 @pytest.fixture
 def in_process():
-    """Give a paused node in this process, its 0.5 s status timer cancelled, and an executor."""
-    context = Context()
-    rclpy.init(context=context, domain_id=unique_domain_id())
-    made = CollisionNode(context=context, parameter_overrides=[
-        Parameter('paused', Parameter.Type.BOOL, True)])
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(made)
+    """Give a paused node in this process, its 0.5 s status timer cancelled."""
+    harness = InProcessNode([Parameter('paused', Parameter.Type.BOOL, True)])
     try:
-        made.status_timer.cancel()         # every status from now on comes from a command
-        made.pub_status = Recorder()
-        yield made, executor
+        harness.node.status_timer.cancel()     # every status from now on comes from a command
+        harness.node.pub_status = Recorder()
+        yield harness
     finally:
-        made.stepper.close(1.0)
-        executor.shutdown()
-        made.destroy_node()
-        rclpy.shutdown(context=context)
+        harness.close()
 
 
-def deliver(node, executor, topic: str, text: str) -> dict:
+def deliver(harness, topic: str, text: str) -> dict:
     """Hand a request to the node's subscription callback; return the status that follows."""
-    statuses = node.pub_status.published
+    statuses = harness.node.pub_status.published
     seen = len(statuses)
-    subscription = next(s for s in node.subscriptions if s.topic_name.endswith('/' + topic))
-    subscription.callback(string_bytes(text))
-    deadline = time.monotonic() + 30.0
-    while len(statuses) == seen:
-        assert time.monotonic() < deadline, f'no status after {topic} {text}'
-        executor.spin_once(timeout_sec=0.05)
+    harness.deliver(topic, string_bytes(text))
+    harness.spin_until(lambda: len(statuses) > seen)
     return statuses[-1]
 
 
 def test_every_accepted_command_publishes_the_status(in_process):
     """The periodic status is off: each status below comes from the command."""
-    node, executor = in_process
-    assert deliver(node, executor, 'spawn', '{position: [0.5, 0.3], radius: 0.05, '
-                                            'mass: 2.0}')['particles'] == 17
-    status = deliver(node, executor, 'teleport', '{id: 0, velocity: [1.0, 0.0]}')
+    node = in_process.node
+    assert deliver(in_process, 'spawn', '{position: [0.5, 0.3], radius: 0.05, '
+                                        'mass: 2.0}')['particles'] == 17
+    status = deliver(in_process, 'teleport', '{id: 0, velocity: [1.0, 0.0]}')
     # The cue ball's 5 m/s became 1 m/s; the new particle rests.
     assert status['particles'] == 17
     assert status['kinetic_energy'] == pytest.approx(0.5 * 0.17 * 1.0, rel=1e-12)
-    assert deliver(node, executor, 'delete', '{ids: [16]}')['particles'] == 16
-    status = deliver(node, executor, 'step', '{steps: 3}')    # answered when the steps end
+    assert deliver(in_process, 'delete', '{ids: [16]}')['particles'] == 16
+    status = deliver(in_process, 'step', '{steps: 3}')        # answered when the steps end
     assert status['steps'] == 3 and status['time'] == pytest.approx(3 * DT)
     # A refusal changes nothing and sends no status.
     count = len(node.pub_status.published)
-    subscription = next(s for s in node.subscriptions if s.topic_name.endswith('/teleport'))
-    subscription.callback(string_bytes('{id: 99, velocity: [1.0, 0.0]}'))
+    in_process.deliver('teleport', string_bytes('{id: 99, velocity: [1.0, 0.0]}'))
     assert len(node.pub_status.published) == count and not node._status_due
-    assert deliver(node, executor, 'impulse', '{id: 1, impulse: [0.017, 0.0]}')[
+    assert deliver(in_process, 'impulse', '{id: 1, impulse: [0.017, 0.0]}')[
         'kinetic_energy'] == pytest.approx(0.5 * 0.17 * (1.0 + 0.01), rel=1e-12)

@@ -18,6 +18,9 @@ from msg_adapters import (particle_id_from_frame, poses_from_pose_array, seconds
                           state_from_point_cloud)
 from node_harness import NodeUnderTest
 
+# Starts ROS processes or tests a ROS front end: `-m "not ros"` leaves it out.
+pytestmark = pytest.mark.ros
+
 RATE = 20.0
 # The default scene, scenes/elastic_break.yaml: a billiards break.
 PARTICLES = 16

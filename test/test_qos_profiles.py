@@ -5,8 +5,13 @@ from __future__ import annotations
 import os
 import xml.etree.ElementTree as ElementTree
 
+import pytest
+
 from collision_node.ros.qos import (FASTDDS_PROFILES_XML, fastdds_profiles, MIDDLEWARE_SETTINGS,
                                     own_fastdds_profiles)
+
+# Starts ROS processes or tests a ROS front end: `-m "not ros"` leaves it out.
+pytestmark = pytest.mark.ros
 
 NS = {'dds': 'http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles'}
 

@@ -3,7 +3,7 @@
 Under gravity ``exact`` finds the resting contacts at each step's start,
 zeroes their normal speeds (booking the energy), solves their support
 forces and moves each supported particle with its own constant
-acceleration (``resting_kernels``, ``stages/event_driven.py``). A pair whose
+acceleration (``resting_kernels``, ``stages/events/event_driven.py``). A pair whose
 accelerations differ meets at the first root of a quartic
 (``event_kernels.curved_delay``), checked here against closed forms and
 a brute-force search.
@@ -16,9 +16,9 @@ import math
 import numpy as np
 import pytest
 
-from collision_node.physics import event_kernels as ek
-from collision_node.physics.scene import parse_scene
-from collision_node.physics.world import World
+from collision_node.physics.stages.events import event_kernels as ek
+from collision_node.physics.model.scene import parse_scene
+from collision_node.physics.step.world import World
 
 G = 9.81
 
@@ -157,15 +157,16 @@ def test_column_sits_still_and_the_supports_carry_the_weight():
     r = 0.05
     world = exact([ball(0.0, r + 2 * r * k, mass=k + 1.0) for k in range(5)])
     world.step()
-    accel, rest = stage(world)._supports
-    np.testing.assert_allclose(accel[:, :2], 0.0, atol=1e-9)
-    assert rest[:, ek.S_SUPPORTED].tolist() == [1] * 5
-    assert rest[0, ek.S_WALLS] == 1 << 2                 # the floor: axis 1, low side
+    supports = stage(world)._supports
+    np.testing.assert_allclose(supports.acceleration[:, :2], 0.0, atol=1e-9)
+    assert supports.supported.tolist() == [1] * 5
+    assert supports.wall_mask[0] == 1 << 2               # the floor: axis 1, low side
     floor = stage(world)._old_partner[0].tolist().index(-2 - 2)
     assert stage(world)._old_force[0, floor] == pytest.approx(15.0 * G, rel=1e-10)
     world.step(10)
-    assert stage(world).resting_info[1] == 2      # warm: one over-relaxed sweep, one plain
-    np.testing.assert_allclose(stage(world)._supports[0][:, :2], 0.0, atol=1e-9)
+    # Warm: one over-relaxed sweep, one plain.
+    assert stage(world).resting_info['force_sweeps'] == 2
+    np.testing.assert_allclose(stage(world)._supports.acceleration[:, :2], 0.0, atol=1e-9)
     assert np.abs(world.state.velocity).max() < 1e-12
     assert world.stats.fallback_steps == 0
 

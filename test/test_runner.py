@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from collision_node import simulate
-from collision_node.physics.scene import load_scene
+from collision_node.physics.model.scene import load_scene
 from collision_node.simulate import main
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from collision_node import World, parse_scene
-from collision_node.physics.accuracy import PRESETS
+from collision_node.physics.model.accuracy import PRESETS
 
 G = 9.81
 FAR = 1.0e9

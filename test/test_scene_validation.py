@@ -230,17 +230,17 @@ def test_bad_spawn_leaves_the_world_untouched(world_from):
     np.testing.assert_array_equal(world.state.ids, [0, 1, 2])
 
 
-def test_readme_scene_example_is_a_valid_scene():
-    readme = (Path(__file__).resolve().parent.parent / 'README.md').read_text()
-    example = readme.split('## Scene files')[1].split('```yaml')[1].split('```')[0]
-    scene = parse_scene_text(example, 'README.md')
+def test_manual_scene_example_is_a_valid_scene():
+    page = (Path(__file__).resolve().parent.parent / 'docs' / 'scenes.md').read_text()
+    example = page.split('## Scene files')[1].split('```yaml')[1].split('```')[0]
+    scene = parse_scene_text(example, 'docs/scenes.md')
     assert scene.name == 'oblique_pair' and scene.dimensions == 2
     assert len(scene.initial) == 3 + 100
     assert scene.initial.inv_mass[2] == 0.0 and scene.effects.walls is not None
 
 
 def test_oversized_generate_spawn_is_refused_before_generating(monkeypatch):
-    import collision_node.physics.scene as scene_module
+    import collision_node.physics.model.scene as scene_module
     world = World(parse_scene({'particles': [
         {'position': [0, 0, 0], 'radius': 0.1, 'mass': 1}]}, 'room'), max_particles=10)
 

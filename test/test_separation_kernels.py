@@ -1,11 +1,12 @@
 """The compiled narrowphase and separation do exactly what their numpy statements do.
 
-``contact_kernels.find_overlaps``, ``project_overlaps`` and ``pay_for_lift``
+``narrowphase_kernels.find_overlaps``, ``project_overlaps`` and ``pay_for_lift``
 write the narrowphase's contact test and the separation stage's projection,
 wall clamp and per-cluster lift budget one particle or pair at a time. Here
-both backends run on the same inputs (random overlaps, and every step of the
-shipped pile pouring and settling) and must keep the same contacts and give
-the same positions, velocities and booked energy.
+they and their vectorised references (``test/oracles``) run on the same
+inputs (random overlaps, and every step of the shipped pile pouring and
+settling) and must keep the same contacts and give the same positions,
+velocities and booked energy.
 """
 
 from __future__ import annotations
@@ -16,14 +17,15 @@ import numpy as np
 import pytest
 
 from collision_node import World
-from collision_node.physics.accuracy import parse_accuracy
-from collision_node.physics.effects import Effects, Walls
-from collision_node.physics.scene import load_scene
-from collision_node.physics.stages.narrowphase import (
-    NarrowphaseStage, find_contacts, find_contacts_compiled)
-from collision_node.physics.stages.separation import clusters, SeparationStage
-from collision_node.physics.state import ParticleState
-from collision_node.physics.step import StepContext, StepStats
+from collision_node.physics.model.accuracy import parse_accuracy
+from collision_node.physics.model.effects import Effects, Walls
+from collision_node.physics.model.scene import load_scene
+from collision_node.physics.stages.detection.narrowphase import find_contacts, NarrowphaseStage
+from collision_node.physics.stages.correction.separation import SeparationStage
+from collision_node.physics.model.state import ParticleState
+from collision_node.physics.step.pipeline import StepContext, StepStats
+from oracles.narrowphase_oracle import find_contacts as reference_contacts, NarrowphaseOracle
+from oracles.separation_oracle import clusters, SeparationOracle
 
 GRAVITY = np.array([0.0, -9.81, 0.0])
 
@@ -69,7 +71,7 @@ def assert_contacts_equal(a, b) -> None:
 
 
 def assert_same_outcome(ref: StepContext, new: StepContext) -> None:
-    """Assert the two backends moved, slowed and booked the same.
+    """Assert the kernels and the reference moved, slowed and booked the same.
 
     Bit for bit: the kernels do the same floating-point operations in the
     same order (sums per particle and per cluster in numpy's order).
@@ -84,12 +86,12 @@ def assert_same_outcome(ref: StepContext, new: StepContext) -> None:
 
 
 def run_both(state: ParticleState, effects: Effects, dims: int, contacts, losses=None):
-    """Run separation with both backends on copies; return (numpy ctx, kernel ctx)."""
+    """Run the reference and the stage on copies; return (reference ctx, stage ctx)."""
     out = []
-    for backend in ('numpy', 'kernel'):
+    for stage in (SeparationOracle, SeparationStage):
         ctx = context(copy.deepcopy(state), effects, dims, losses)
         ctx.contacts = contacts
-        SeparationStage(walls=effects.walls, backend=backend).run(ctx)
+        stage(walls=effects.walls).run(ctx)
         out.append(ctx)
     return out
 
@@ -101,9 +103,9 @@ def test_compiled_narrowphase_keeps_the_same_contacts(dims, seed):
     state = overlapping_state(rng, 120, dims, 1.0)
     i, j = all_pairs(len(state))
     args = (state.position, state.velocity, state.radius, state.inv_mass, i, j)
-    ref = find_contacts(*args)
+    ref = reference_contacts(*args)
     assert len(ref) > 50                                 # a crowded box: many overlaps
-    assert_contacts_equal(find_contacts_compiled(*args), ref)
+    assert_contacts_equal(find_contacts(*args), ref)
     # The fallback lines of action of the coincident pairs are exercised.
     first = (ref.i == 0) & (ref.j == 1)
     assert first.sum() == 1
@@ -115,11 +117,11 @@ def test_compiled_narrowphase_finds_nothing_without_overlap():
     state = overlapping_state(np.random.default_rng(1), 10, 3, 1.0)
     state.position[:, 0] = np.arange(10) * 10.0
     i, j = all_pairs(10)
-    assert len(find_contacts_compiled(state.position, state.velocity, state.radius,
-                                      state.inv_mass, i, j)) == 0
+    assert len(find_contacts(state.position, state.velocity, state.radius,
+                             state.inv_mass, i, j)) == 0
     none = np.zeros(0, dtype=np.int64)
-    assert len(find_contacts_compiled(state.position, state.velocity, state.radius,
-                                      state.inv_mass, none, none)) == 0
+    assert len(find_contacts(state.position, state.velocity, state.radius,
+                             state.inv_mass, none, none)) == 0
 
 
 @pytest.mark.parametrize('dims', [2, 3])
@@ -134,8 +136,8 @@ def test_compiled_separation_equals_numpy_on_random_overlaps(dims, gravity, wall
                  high=np.array([1.0, 3.0, np.inf if dims == 2 else 1.0]), restitution=0.5)
     effects = Effects(gravity=GRAVITY if gravity else None, walls=wall if walls else None)
     i, j = all_pairs(len(state))
-    contacts = find_contacts(state.position, state.velocity, state.radius, state.inv_mass,
-                             i, j)
+    contacts = reference_contacts(state.position, state.velocity, state.radius,
+                                  state.inv_mass, i, j)
     # Losses that pay part of the lift in some clusters and none in others.
     losses = rng.uniform(0.0, 2e-3, len(state)) * (rng.uniform(size=len(state)) < 0.5)
     ref, new = run_both(state, effects, dims, contacts, losses if gravity else None)
@@ -173,7 +175,7 @@ def assert_lift_within_budget(before: ParticleState, ctx: StepContext, contacts,
     # Pure projection (no budget rule) would have lifted some cluster further.
     projected = context(copy.deepcopy(before), ctx.effects, ctx.dimensions, None)
     projected.contacts = contacts
-    SeparationStage(walls=ctx.effects.walls, backend='numpy')._project(projected, True)
+    SeparationOracle(walls=ctx.effects.walls)._project(projected, True)
     lifted = -mass * ((projected.state.position - before.position) @ GRAVITY)
     over = np.bincount(cluster, weights=lifted, minlength=count) > budget + 1e-9
     assert over.any()
@@ -187,8 +189,8 @@ def test_compiled_separation_holds_particles_at_walls_like_numpy():
                           inv_mass=np.array([10.0, 0.1]))
     wall = Walls(low=np.array([0.0, 0.0, -np.inf]), high=np.array([1.0, 1.0, np.inf]))
     effects = Effects(walls=wall)
-    contacts = find_contacts(state.position, state.velocity, state.radius, state.inv_mass,
-                             np.array([0]), np.array([1]))
+    contacts = reference_contacts(state.position, state.velocity, state.radius,
+                                  state.inv_mass, np.array([0]), np.array([1]))
     ref, new = run_both(state, effects, 2, contacts)
     assert ref.state.position[0, 1] == 0.1               # held on the floor
     assert ref.state.position[1, 1] == pytest.approx(0.3)
@@ -196,8 +198,8 @@ def test_compiled_separation_holds_particles_at_walls_like_numpy():
 
 
 def test_compiled_stages_equal_numpy_at_every_step_of_the_pile():
-    # The shipped pile poured and settling (fast): at every step both backends of the
-    # narrowphase and the separation run on the same context and must agree.
+    # The shipped pile poured and settling (fast): at every step the narrowphase and the
+    # separation and their references run on the same context and must agree.
     # Sleeping off: a sleeping pile skips its stages, and every step is compared.
     world = World(load_scene('pile').with_accuracy(
         parse_accuracy({'preset': 'fast', 'sleep_time': None}, 'test')))
@@ -222,16 +224,9 @@ def test_compiled_stages_equal_numpy_at_every_step_of_the_pile():
 
     for k, stage in enumerate(stages):
         if isinstance(stage, NarrowphaseStage):
-            stages[k] = Both(stage, NarrowphaseStage(backend='numpy'))
+            stages[k] = Both(stage, NarrowphaseOracle())
         elif isinstance(stage, SeparationStage):
-            stages[k] = Both(stage, SeparationStage(walls=stage.walls, backend='numpy'))
+            stages[k] = Both(stage, SeparationOracle(walls=stage.walls))
     world.step(240)
     assert checked == {'narrowphase': 240, 'separation': 240}
     assert world.stats.dissipated['separation'] != 0.0
-
-
-def test_backends_are_named():
-    with pytest.raises(ValueError, match='backend'):
-        SeparationStage(backend='fortran')
-    with pytest.raises(ValueError, match='backend'):
-        NarrowphaseStage(backend='fortran')

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from collision_node import load_scene
-from collision_node.physics.scene import shipped_scene_names
+from collision_node.physics.model.scene import shipped_scene_names
 from collision_node.simulate import main
 
 SCENES = Path(__file__).resolve().parent.parent / 'scenes'

@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from collision_node.physics.accuracy import parse_accuracy
-from collision_node.physics.commands import impulse_request, teleport_request
-from collision_node.physics.scene import load_scene, parse_scene
-from collision_node.physics.stages.sleep import sleep_speed
-from collision_node.physics.validation import SceneError
-from collision_node.physics.world import World
+from collision_node.physics.model.accuracy import parse_accuracy
+from collision_node.physics.model.world_commands import impulse_request, teleport_request
+from collision_node.physics.model.scene import load_scene, parse_scene
+from collision_node.physics.stages.sleeping.sleep import sleep_speed
+from collision_node.physics.model.validation import SceneError
+from collision_node.physics.step.world import World
 
 
 def _pile(preset='fast', **settings):

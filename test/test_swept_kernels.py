@@ -1,15 +1,18 @@
-"""The compiled swept stage (``swept_kernels.sweep``) against the numpy rounds it replaces.
+"""The compiled swept stage (``swept_kernels.sweep``) against its numpy rounds.
 
-Both paths of ``SweptContactStage`` run the same scenes from the same
-start: random gases with and without gravity, walls, static particles (the
-quartic root), per-particle restitution and friction (with spin), the
-restitution threshold and resting contact. The compiled step writes each
-formula in the numpy order of operations, so positions, velocities, spins
-and the recorded impacts must be identical to the bit, except where a
-falling particle meets a static one: the quartic's eigenvalues come from
-another LAPACK routine (complex in numba, real in numpy), equal after the
-Newton steps to a few units in the last place, not to the bit. The
-dissipated totals are summed in another order, so they agree to rounding.
+The rounds are ``test/swept_reference.py``.
+
+Both run the same scenes from the same start: random gases with and
+without gravity, walls, static particles (the quartic root), per-particle
+restitution and friction (with spin), the restitution threshold and
+resting contact, drag, at the sequential (``balanced``), requery
+(``accurate``) and batched orderings. The compiled step writes each formula
+in the numpy order of operations, so positions, velocities, spins and the
+recorded impacts must be identical to the bit, except where a falling
+particle meets a static one (the quartic's eigenvalues come from another
+LAPACK routine) and with drag (libm's exponentials, not numpy's vector
+loops): there they agree to a few units in the last place. The dissipated
+totals are summed in another order, so they agree to rounding.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import numpy as np
 import pytest
 
 from collision_node import World, parse_scene
+from swept_reference import use_reference
 
 BOX3 = {'min': [-3, -3, -3], 'max': [3, 3, 3], 'restitution': 0.8}
 BOX2 = {'min': [-3, -3], 'max': [3, 3], 'restitution': 0.8}
@@ -33,18 +37,42 @@ CASES = {
                     'friction': 0.5}, 5, True),
     'threshold': (3, {'walls': BOX3, 'restitution': 0.9, 'restitution_threshold': 0.5}, 0,
                   True),
+    'drag': (3, {'walls': BOX3, 'restitution': 0.9, 'drag': {'linear': 0.5, 'quadratic': 0.2}},
+             0, False),
+    'drag_gravity': (2, {'walls': BOX2, 'restitution': 0.6, 'gravity': [0, -9.81, 0],
+                         'drag': {'linear': 0.3}}, 0, True),
+    # Every eighth particle 15 times faster: impacts send slow particles far out
+    # of their swept balls, so requery adds pairs.
+    'bullets': (3, {'walls': dict(BOX3, restitution=1.0), 'restitution': 1.0}, 0, False),
+    'bullets_friction': (3, {'walls': BOX3, 'restitution': 0.9, 'friction': 0.3}, 0, True),
+    'bullets_gravity': (3, {'walls': BOX3, 'restitution': 0.8, 'gravity': [0, -9.81, 0]}, 0,
+                        False),
+    # Packed into a fifth of the side: particles start overlapping, so impacts
+    # at the same instant share particles (batched shares their impulses).
+    'dense': (3, {'walls': BOX3, 'restitution': 0.9}, 0, False),
+    'dense_2d': (2, {'walls': BOX2, 'restitution': 0.7, 'gravity': [0, -9.81, 0]}, 0, False),
 }
+FAST = ('bullets', 'bullets_friction', 'bullets_gravity')
+DENSE = ('dense', 'dense_2d')
+# The sequential rounds, requery (with four substeps) and batched ordering.
+ACCURACY = {'balanced': 'balanced', 'accurate': 'accurate',
+            'batched': {'preset': 'balanced', 'ordering': 'batched'}}
 
 
-def particles(count, dimensions, static, own, seed):
-    """Return random particles; the first ``static`` are static, every third has e and mu."""
+def particles(count, dimensions, static, own, seed, case=''):
+    """Return random particles; the first ``static`` are static, every third has e and mu.
+
+    In the FAST cases every eighth particle moves 15 times faster; the
+    DENSE cases are packed into a fifth of the side.
+    """
     rng = np.random.default_rng(seed)
-    side = 0.25 * count ** (1.0 / dimensions)
+    side = 0.25 * count ** (1.0 / dimensions) * (0.2 if case in DENSE else 1.0)
+    fast = case in FAST
     out = []
     for k in range(count):
         p = rng.uniform(-side, side, 3)[:dimensions].tolist()
-        v = rng.normal(0.0, 2.0, 3)[:dimensions].tolist()
-        item = {'position': p, 'velocity': v, 'radius': float(rng.uniform(0.05, 0.1)),
+        v = (rng.normal(0.0, 2.0, 3) * (15.0 if fast and k % 8 == 0 else 1.0))[:dimensions]
+        item = {'position': p, 'velocity': v.tolist(), 'radius': float(rng.uniform(0.05, 0.1)),
                 'mass': float(rng.uniform(0.5, 2.0))}
         if k < static:
             item['mass'] = float('inf')
@@ -56,31 +84,38 @@ def particles(count, dimensions, static, own, seed):
     return out
 
 
-def run(scene, compiled, steps):
-    """Step a world with the compiled or the numpy swept stage; return it and its impacts."""
+def scene_of(case, accuracy, seed):
+    """Return the scene of ``case`` at ``accuracy`` (the FAST cases at a longer step)."""
+    dimensions, effects, static, own = CASES[case]
+    return {'dimensions': dimensions, 'dt': 1 / 15 if case in FAST else 1 / 60,
+            'accuracy': ACCURACY[accuracy], 'effects': effects,
+            'particles': particles(120, dimensions, static, own, seed, case)}
+
+
+def run(scene, reference, steps):
+    """Step a world with the compiled stage or its numpy rounds; return it and its impacts."""
     world = World(parse_scene(scene, 'test-scene'))
-    stages = [s for s in world.pipeline.stages if s.name == 'swept_contacts']
-    assert len(stages) == 1
-    stages[0].compiled = compiled
+    if reference:
+        use_reference(world)
     world.record_impacts(True)
     world.step(steps)
     return world, world.take_impacts()
 
 
 @pytest.mark.parametrize('seed', [0, 1])
+@pytest.mark.parametrize('accuracy', list(ACCURACY))
 @pytest.mark.parametrize('case', list(CASES))
-def test_compiled_sweep_matches_numpy_rounds(case, seed):
+def test_compiled_sweep_matches_numpy_rounds(case, accuracy, seed):
     """Same positions, velocities, spins and impacts to the bit; same losses to rounding."""
-    dimensions, effects, static, own = CASES[case]
-    scene = {'dimensions': dimensions, 'dt': 1 / 60, 'accuracy': 'balanced',
-             'effects': effects, 'particles': particles(120, dimensions, static, own, seed)}
-    fast, fast_impacts = run(scene, True, 40)
-    slow, slow_impacts = run(scene, False, 40)
+    scene = scene_of(case, accuracy, seed)
+    fast, fast_impacts = run(scene, False, 40)
+    slow, slow_impacts = run(scene, True, 40)
     assert slow.stats.collisions + slow.stats.wall_collisions > 20   # the case has impacts
-    quartic = static > 0 and 'gravity' in effects
+    _, effects, static, _ = CASES[case]
+    close = (static > 0 and 'gravity' in effects) or 'drag' in effects
 
     def same(actual, desired, name=''):
-        if quartic:
+        if close:
             np.testing.assert_allclose(actual, desired, rtol=1e-9, atol=1e-9, err_msg=name)
         else:
             np.testing.assert_array_equal(actual, desired, err_msg=name)
@@ -98,22 +133,11 @@ def test_compiled_sweep_matches_numpy_rounds(case, seed):
         assert fast.stats.dissipated[effect] == pytest.approx(value, rel=1e-9, abs=1e-12)
 
 
-def test_compiled_sweep_runs_the_balanced_preset():
-    """``balanced`` takes the compiled path; its settings are the ones the kernel covers."""
-    dimensions, effects, static, own = CASES['gravity']
-    world = World(parse_scene({'dimensions': 3, 'dt': 1 / 60, 'accuracy': 'balanced',
-                               'effects': effects,
-                               'particles': particles(20, 3, 0, False, 0)}, 'test-scene'))
-    stage = world.pipeline.stages[0]
-    assert stage.name == 'swept_contacts' and stage.compiled
-    assert stage.ordering == 'sequential' and stage.drag is None and not stage.requery
-
-
 @pytest.mark.parametrize('dimensions', [2, 3])
 def test_in_contact_kernel_matches_numpy_formula(dimensions):
     """The compiled resting-contact marks equal the numpy expressions, entry by entry."""
-    from collision_node.physics.stages.swept_contacts import TOUCH_SLOP
-    from collision_node.physics.swept_kernels import in_contact
+    from collision_node.physics.stages.swept.swept_contacts import TOUCH_SLOP
+    from collision_node.physics.stages.swept.swept_kernels import in_contact
     rng = np.random.default_rng(3)
     n = 400
     radius = rng.uniform(0.05, 0.1, n)
@@ -147,3 +171,26 @@ def test_in_contact_kernel_matches_numpy_formula(dimensions):
     assert np.array_equal(pairs, expected_pairs)
     assert np.array_equal(walls, expected_walls)
     assert 20 < pairs.sum() < 200 and 20 < walls[:, 0:2].sum() < 100   # both outcomes occur
+
+
+def test_the_cases_reach_requery_and_shared_impacts(monkeypatch):
+    """In the cases compared above requery adds pairs and batched rounds share particles."""
+    import swept_reference
+    added, shared = [], []
+    new_pairs, shared_scale = swept_reference._Escapes.new_pairs, swept_reference.shared_scale
+
+    def counting_new_pairs(self, *args):
+        extra = new_pairs(self, *args)
+        added.append(extra[0].size)
+        return extra
+
+    def counting_shared_scale(*args):
+        scale = shared_scale(*args)
+        shared.append(int(np.count_nonzero(scale < 1.0)))
+        return scale
+    monkeypatch.setattr(swept_reference._Escapes, 'new_pairs', counting_new_pairs)
+    monkeypatch.setattr(swept_reference, 'shared_scale', counting_shared_scale)
+    for case in FAST + DENSE:
+        for accuracy in ('accurate', 'batched'):
+            run(scene_of(case, accuracy, 0), True, 40)
+    assert sum(added) > 0 and sum(shared) > 0

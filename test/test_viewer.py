@@ -9,6 +9,9 @@ import pytest
 from collision_node.ros.viewer import (collision_lines, draw_snapshot, parse_arguments,
                                        summary_line)
 
+# Starts ROS processes or tests a ROS front end: `-m "not ros"` leaves it out.
+pytestmark = pytest.mark.ros
+
 STATUS = {'scene': 'gas', 'particles': 1000, 'time': 12.3456, 'real_time_factor': 1.0,
           'measured_real_time_factor': 0.987, 'collisions_per_second': 412.25,
           'kinetic_energy': 3.0625, 'paused': False, 'keeping_up': True, 'error': None}

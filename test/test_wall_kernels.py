@@ -2,7 +2,8 @@
 
 ``wall_kernels.wall_pass`` writes ``contact_law.reflect_on_plane``, the
 combine rule at a wall and the wall friction with spin one particle at a
-time. Here both backends of the walls stage run on the same contexts
+time. Here the stage and its numpy reference (``solve_reference``) run on
+the same contexts
 (random particles past every plane of a box, with and without gravity,
 per-particle restitution and friction, a restitution threshold, 2-D and
 3-D, and every step of the shipped pile) and must give identical
@@ -18,13 +19,14 @@ import numpy as np
 import pytest
 
 from collision_node import World
-from collision_node.physics.accuracy import parse_accuracy
-from collision_node.physics.effects import Effects, Walls
-from collision_node.physics.impacts import ImpactLog
-from collision_node.physics.scene import load_scene
-from collision_node.physics.stages.walls import WallStage
-from collision_node.physics.state import ParticleState
-from collision_node.physics.step import StepContext, StepStats
+from collision_node.physics.model.accuracy import parse_accuracy
+from collision_node.physics.model.effects import Effects, Walls
+from collision_node.physics.model.impacts import ImpactLog
+from collision_node.physics.model.scene import load_scene
+from collision_node.physics.stages.solve.walls import WallStage
+from collision_node.physics.model.state import ParticleState
+from collision_node.physics.step.pipeline import StepContext, StepStats
+from solve_reference import WallReference
 
 GRAVITY = np.array([0.0, -9.81, 0.0])
 
@@ -94,7 +96,7 @@ def assert_same_outcome(ref: StepContext, new: StepContext) -> None:
 def run_both(ctx: StepContext, walls: Walls, friction) -> tuple[StepContext, StepContext]:
     """Run the numpy and the compiled walls stage on twins of ``ctx``; return (ref, new)."""
     ref = twin_of(ctx)
-    WallStage(walls, friction=friction, backend='numpy').run(ref)
+    WallReference(walls, friction=friction).run(ref)
     WallStage(walls, friction=friction).run(ctx)
     return ref, ctx
 
@@ -152,7 +154,7 @@ def test_single_plane_and_no_recording():
 
 def test_compiled_walls_equal_numpy_at_every_step_of_the_pile():
     # The shipped pile poured and settling (fast: walls with friction and
-    # gravity): at every step both backends run on the same context.
+    # gravity): at every step the stage and its reference run on the same context.
     # Sleeping off: a sleeping pile skips its stages, and every step is compared.
     world = World(load_scene('pile').with_accuracy(
         parse_accuracy({'preset': 'fast', 'sleep_time': None}, 'test')))
@@ -163,7 +165,7 @@ def test_compiled_walls_equal_numpy_at_every_step_of_the_pile():
     class Both:
         def __init__(self, stage):
             self.stage, self.name = stage, stage.name
-            self.reference = WallStage(stage.walls, friction=stage.friction, backend='numpy')
+            self.reference = WallReference(stage.walls, friction=stage.friction)
 
         def run(self, ctx):
             twin = twin_of(ctx)
@@ -176,8 +178,3 @@ def test_compiled_walls_equal_numpy_at_every_step_of_the_pile():
     stages[at] = Both(stages[at])
     world.step(240)
     assert len(checked) == 240 and checked[-1] > 100
-
-
-def test_backends_are_named():
-    with pytest.raises(ValueError, match='backend'):
-        WallStage(Walls(low=np.zeros(3), high=np.ones(3)), backend='fortran')

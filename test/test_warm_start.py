@@ -16,11 +16,12 @@ import numpy as np
 import pytest
 
 from collision_node import World, parse_scene
-from collision_node.physics.accuracy import PRESETS
-from collision_node.physics.scene import load_scene
-from collision_node.physics.stages.sequential_impulses import (ContactCache,
-                                                               SequentialImpulseStage)
-from collision_node.physics.state import ParticleState
+from collision_node.physics.model.accuracy import PRESETS
+from collision_node.physics.model.scene import load_scene
+from collision_node.physics.stages.solve.sequential_impulses import (ContactCache,
+                                                                     SequentialImpulseStage)
+from collision_node.physics.model.state import ParticleState
+from solve_reference import lookup, store
 
 G = 9.81
 RADIUS = 0.05
@@ -104,20 +105,21 @@ def test_cache_lookup_follows_ids_not_rows():
     acc = np.array([1.0, 0.0, 2.0])                          # (7,8) holds nothing
     acc_t = np.array([[0.1, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.2, 0.0]])
     w_index, w_code = np.array([0, 3]), np.array([2, 3])
-    cache.store(ids, i, j, acc, acc_t, w_index, w_code, np.array([4.0, 5.0]), np.zeros((2, 3)))
+    cache.adopt(store(ids, i, j, acc, acc_t, w_index, w_code, np.array([4.0, 5.0]),
+                      np.zeros((2, 3))))
     assert len(cache) == 4
     # Particle 7 deleted and 20 spawned: rows shift, (8, 12) now rows (1, 2),
     # written the other way round (its tangential impulse is on the other one).
     ids2 = np.array([3, 8, 12, 20], dtype=np.int64)
-    got, got_t, w_got, _ = cache.lookup(ids2, np.array([2, 0, 3]), np.array([1, 1, 2]),
-                                        np.array([2, 0, 3]), np.array([3, 2, 3]))
+    got, got_t, w_got, _ = lookup(cache, ids2, np.array([2, 0, 3]), np.array([1, 1, 2]),
+                                  np.array([2, 0, 3]), np.array([3, 2, 3]))
     np.testing.assert_array_equal(got, [2.0, 0.0, 0.0])     # (12,8), (3,8) new, (20,12) new
     np.testing.assert_array_equal(got_t[0], [0.0, -0.2, 0.0])
     np.testing.assert_array_equal(got_t[1:], 0.0)
     np.testing.assert_array_equal(w_got, [5.0, 4.0, 0.0])   # 12 and 3 on their planes
     # The same particle on another plane is another contact.
-    _, _, w_other, _ = cache.lookup(ids2, np.zeros(0, np.int64), np.zeros(0, np.int64),
-                                    np.array([0]), np.array([0]))
+    _, _, w_other, _ = lookup(cache, ids2, np.zeros(0, np.int64), np.zeros(0, np.int64),
+                              np.array([0]), np.array([0]))
     np.testing.assert_array_equal(w_other, [0.0])
 
 
@@ -146,7 +148,7 @@ def test_cache_survives_delete_and_spawn():
     pairs = [(a, b) for (a, b) in before if gone not in (a, b)]
     i = np.array([row[a] for a, b in pairs])
     j = np.array([row[b] for a, b in pairs])
-    got, _, _, _ = cache.lookup(s.ids, i, j, np.zeros(0, np.int64), np.zeros(0, np.int64))
+    got, _, _, _ = lookup(cache, s.ids, i, j, np.zeros(0, np.int64), np.zeros(0, np.int64))
     np.testing.assert_array_equal(got, [before[p] for p in pairs])
     # Contacts of the deleted disc are gone (its id is never reused).
     assert int(spawned[0]) not in (gone,)

@@ -17,11 +17,11 @@ from typing import Optional, Sequence
 # Subcommand name -> module with add_arguments(parser) and run(args).
 SUBCOMMANDS: dict[str, str] = {
     'throughput': 'collision_node.bench.throughput',
-    'node': 'collision_node.bench.node',
-    'effects': 'collision_node.bench.effects',
-    'accuracy': 'collision_node.bench.accuracy',
+    'node': 'collision_node.bench.node_ticks',
+    'effects': 'collision_node.bench.effect_costs',
+    'accuracy': 'collision_node.bench.accuracy_ladder',
     'node-load': 'collision_node.bench.node_load',
-    'commands': 'collision_node.bench.commands',
+    'commands': 'collision_node.bench.spawn_burst',
     'pile': 'collision_node.bench.pile',
     'mixed': 'collision_node.bench.mixed',
     'exact': 'collision_node.bench.exact',

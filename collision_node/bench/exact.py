@@ -27,9 +27,9 @@ import sys
 import time
 from typing import Optional, Sequence
 
-from ..physics import kernels
-from ..physics.scene import parse_scene
-from ..physics.world import World
+from ..physics.step import kernels
+from ..physics.model.scene import parse_scene
+from ..physics.step.world import World
 from .throughput import gas_scene
 
 FRACTION = 0.1          # volume fraction of the gas

@@ -26,9 +26,9 @@ import time
 
 import numpy as np
 
-from ..physics.scene import parse_scene
-from ..physics.stages.broadphase import candidate_pairs
-from ..physics.world import World
+from ..physics.model.scene import parse_scene
+from ..physics.stages.detection.broadphase import candidate_pairs
+from ..physics.step.world import World
 
 RADIUS = 0.05
 DT = 1.0 / 240.0

@@ -74,7 +74,7 @@ from msg_adapters.cdr import CdrWriter
 from msg_adapters.strings import string_bytes
 
 from ..ros.qos import COMMAND_QOS, fastdds_profiles, SERVICE_QOS, STATE_QOS, STATUS_QOS
-from .node import spin_until_stopped
+from .node_ticks import spin_until_stopped
 
 NODE_NAME = 'collision_node'
 SPAWN_RADIUS = 0.005          # m, the flood's and the latency probes' particles

@@ -23,7 +23,7 @@ The second table (skip it with ``--no-3d``) pours ``--count3d`` spheres
 ``balanced`` and reports the real-time factor (simulated over wall
 seconds, one process, one core) over ``--steps3d`` steps (default 60:
 1 s; the pour takes about 2 s to land, so longer runs include the settled
-pile).
+pile). ``--profile`` adds every run's wall time per stage (``World.profile``).
 """
 
 from __future__ import annotations
@@ -37,11 +37,11 @@ from typing import Optional
 
 import numpy as np
 
-from ..physics.kernels import prepare as prepare_kernels
-from ..physics.reference import end_penetration
-from ..physics.scene import load_scene, parse_scene
-from ..physics.validation import SceneError
-from ..physics.world import World
+from ..physics.step.kernels import prepare as prepare_kernels
+from ..physics.step.reference import end_penetration
+from ..physics.model.scene import load_scene, parse_scene
+from ..physics.model.validation import SceneError
+from ..physics.step.world import World
 
 PRESETS = ('fast', 'balanced', 'accurate', 'exact')
 PYMUNK_MISSING = 'pymunk not installed (pip install pymunk==7.x): comparison row skipped'
@@ -63,7 +63,7 @@ def wall_penetration(position: np.ndarray, radius: np.ndarray, low: np.ndarray,
 def pile_quality(position: np.ndarray, velocity: np.ndarray, radius: np.ndarray,
                  low: np.ndarray, high: np.ndarray, dimensions: int) -> dict:
     """Return the deepest overlap over the radius and the fastest particle's speed."""
-    from ..physics.state import ParticleState
+    from ..physics.model.state import ParticleState
     n = position.shape[0]
     padded = np.zeros((n, 3))
     padded[:, :dimensions] = position[:, :dimensions]
@@ -93,12 +93,13 @@ def run_preset(scene, preset: str, steps: int, max_seconds: float) -> dict:
     s, walls = world.state, scene.effects.walls
     quality = pile_quality(s.position, s.velocity, s.radius, walls.low, walls.high,
                            scene.dimensions)
-    return dict(quality, label=preset, steps=done, ms=1e3 * wall / done, cpu_ms=1e3 * cpu / done)
+    return dict(quality, label=preset, steps=done, ms=1e3 * wall / done, cpu_ms=1e3 * cpu / done,
+                profile=world.profile())
 
 
 def _settings(preset: str):
     """Return the accuracy settings of a preset by name."""
-    from ..physics.accuracy import parse_accuracy
+    from ..physics.model.accuracy import parse_accuracy
     return parse_accuracy(preset, 'bench pile: accuracy')
 
 
@@ -176,7 +177,7 @@ def run_pile3d(count: int, steps: int, preset: str) -> dict:
     quality = pile_quality(s.position, s.velocity, s.radius, walls.low, walls.high, 3)
     return dict(quality, label=preset, steps=steps, ms=1e3 * wall / steps,
                 cpu_ms=1e3 * cpu / steps, real_time=steps * scene.dt / wall,
-                cpu_real_time=steps * scene.dt / cpu)
+                cpu_real_time=steps * scene.dt / cpu, profile=world.profile())
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -193,6 +194,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='steps of the 3-D pile at dt = 1/60 (default 60: 1 s)')
     parser.add_argument('--presets3d', nargs='+', default=['balanced'], choices=PRESETS[:3],
                         help='presets of the 3-D pile (default: balanced)')
+    parser.add_argument('--profile', action='store_true',
+                        help='after each table, the wall time per stage of every run '
+                             '(the first step apart)')
 
 
 def _load_line() -> str:
@@ -233,6 +237,8 @@ def run(args: argparse.Namespace) -> int:
         print(f'| {row["label"]} | {row["steps"]} | {row["ms"]:.3g} | {row["cpu_ms"]:.3g} '
               f'| {row["overlap_pairs_r"]:.3g} | {row["overlap_walls_r"]:.3g} '
               f'| {row["fastest"]:.3g} | {"yes" if row["fastest"] < threshold else "no"} |')
+    if args.profile:
+        print_profiles('2-D pile', rows)
     if args.no_3d:
         return 0
     print()
@@ -242,10 +248,24 @@ def run(args: argparse.Namespace) -> int:
     print('| preset | steps | ms per step | CPU ms per step | real-time factor '
           '| real-time factor (CPU) | deepest overlap / r | fastest sphere m/s |')
     print('|---|---:|---:|---:|---:|---:|---:|---:|')
+    rows3d = []
     for preset in args.presets3d:
         row = run_pile3d(args.count3d, args.steps3d, preset)
         print(f'| {preset} | {row["steps"]} | {row["ms"]:.4g} | {row["cpu_ms"]:.4g} '
               f'| {row["real_time"]:.3g} | {row["cpu_real_time"]:.3g} '
               f'| {max(row["overlap_pairs_r"], row["overlap_walls_r"]):.3g} '
               f'| {row["fastest"]:.3g} |')
+        rows3d.append(row)
+    if args.profile:
+        print_profiles('3-D pile', rows3d)
     return 0
+
+
+def print_profiles(title: str, rows: list) -> None:
+    """Print the per-stage profile of every row that has one (pymunk's has none)."""
+    for row in rows:
+        if 'profile' in row:
+            print()
+            print(f'{title}, {row["label"]}, per stage:')
+            print()
+            print(row['profile'].table())

@@ -27,45 +27,29 @@ import time
 
 import numpy as np
 
-from ..physics import kernels
-from ..physics.scene import parse_scene
-from ..physics.stages.broadphase import candidate_pairs
-from ..physics.world import World
+from ..physics.step import kernels
+from ..physics.model.scene import parse_scene
+from ..physics.stages.detection.broadphase import candidate_pairs
+from ..physics.step.world import World
+from ..scenarios import ball, resting_column, resting_pile
 
 RADIUS = 0.05
-G = 9.81
 WARM_STEPS = 2
 STEPS = {'column': 240, 'pile': 24, 'drop': 60}
 PRESETS = ('fast', 'balanced', 'accurate', 'exact')
 
 
-def disc(x: float, y: float) -> dict:
-    """Return one 1 kg disc of radius ``RADIUS`` at rest at (x, y)."""
-    return {'position': [x, y], 'radius': RADIUS, 'mass': 1.0}
-
-
-def hexagonal_rows(rows: int, per_row: int) -> list:
-    """Return discs in rows, each row resting in the hollows of the one below."""
-    height = math.sqrt(3.0) * RADIUS
-    return [disc((RADIUS if row % 2 == 0 else 2 * RADIUS) + 2 * RADIUS * k,
-                 RADIUS + height * row)
-            for row in range(rows) for k in range(per_row)]
-
-
 def scene(name: str, preset: str) -> dict:
     """Return the scene ``name`` under ``preset``."""
-    effects = {'gravity': [0.0, -G], 'restitution': 0.0}
     if name == 'column':
-        particles = [disc(0.0, RADIUS + 2 * RADIUS * k) for k in range(20)]
-        effects['walls'] = {'min': [None, 0.0]}
+        mapping = resting_column(20, 0.0, RADIUS)
     else:
-        particles = hexagonal_rows(20, 25)
-        effects['walls'] = {'min': [0.0, 0.0], 'max': [51 * RADIUS, None]}
+        mapping = resting_pile(0.0, 20, 25, RADIUS)
         if name == 'drop':
             top = RADIUS + math.sqrt(3.0) * RADIUS * 19
-            particles.append(disc(26 * RADIUS, top + 2 * RADIUS + 0.3))
-    return {'dimensions': 2, 'dt': 1.0 / 240.0, 'accuracy': preset, 'effects': effects,
-            'particles': particles}
+            mapping['particles'].append(ball([26 * RADIUS, top + 2 * RADIUS + 0.3],
+                                             RADIUS, 1.0))
+    return dict(mapping, accuracy=preset)
 
 
 def deepest_overlap(world: World) -> float:

@@ -9,7 +9,8 @@ whole world steps (every stage of the pipeline, walls included) and
 prints a Markdown table with the growth exponent between successive N:
 log(t2 / t1) / log(N2 / N1) for the wall time per step, 1.0 being linear.
 The CPU-time column is this process's CPU time: on a shared machine it
-shows how much of the wall time was waiting for a core.
+shows how much of the wall time was waiting for a core. ``--profile``
+adds each run's wall time per stage (``World.profile``).
 """
 
 from __future__ import annotations
@@ -21,8 +22,9 @@ import platform
 import time
 from typing import Optional
 
-from ..physics.scene import parse_scene
-from ..physics.world import World
+from ..physics.model.scene import parse_scene
+from ..physics.step.world import World
+from ..scenarios import gas
 
 DEFAULT_COUNTS = (1_000, 10_000, 100_000)
 # Density of scenes/gas_10k.yaml: 10,000 particles in a 5 m cube (4.2 % volume fraction).
@@ -41,13 +43,8 @@ def gas_scene(count: int, seed: int = 7, fraction: Optional[float] = None) -> di
         half = 0.5 * REFERENCE_SIDE * (count / REFERENCE_COUNT) ** (1.0 / 3.0)
     else:
         half = 0.5 * (count * 4.0 / 3.0 * math.pi * RADIUS ** 3 / fraction) ** (1.0 / 3.0)
-    box = {'min': [-half] * 3, 'max': [half] * 3}
-    return {
-        'name': f'gas_{count}', 'dimensions': 3, 'dt': DT,
-        'effects': {'walls': dict(box, restitution=1.0), 'restitution': 1.0},
-        'generate': [{'kind': 'gas', 'count': count, 'radius': RADIUS, 'mass': 1.0,
-                      'speed': 1.0, 'seed': seed, 'region': box}],
-    }
+    return gas(count, RADIUS, 1.0, seed=seed, low=-half, high=half, wall_restitution=1.0,
+               effects={'restitution': 1.0}, name=f'gas_{count}', dt=DT)
 
 
 def time_gas(count: int, steps: int, warmup: int, accuracy: str = 'balanced',
@@ -70,6 +67,7 @@ def time_gas(count: int, steps: int, warmup: int, accuracy: str = 'balanced',
         'cpu_ns_per_particle_step': cpu_seconds / (steps * count) * 1e9,
         'collisions_per_step': (world.stats.collisions - collisions_start) / steps,
         'energy_drift': world.kinetic_energy() / energy_start - 1.0,
+        'profile': world.profile(),
     }
 
 
@@ -97,6 +95,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--fraction', type=float, default=None,
                         help='volume fraction of the gas (default: the density of gas_10k, '
                              '4.2 %%)')
+    parser.add_argument('--profile', action='store_true',
+                        help='after the table, the wall time per stage of each count\'s run '
+                             '(warm-up and timed steps; the first step apart)')
 
 
 def run(args: argparse.Namespace) -> int:
@@ -131,4 +132,10 @@ def run(args: argparse.Namespace) -> int:
         print()
         print(f'Growth exponent from N = {rows[0]["count"]:,} to {rows[-1]["count"]:,}: '
               f'{growth_exponent(rows[0], rows[-1]):.3f}')
+    if args.profile:
+        for row in rows:
+            print()
+            print(f'Per stage, N = {row["count"]:,} ({args.accuracy}):')
+            print()
+            print(row['profile'].table())
     return 0

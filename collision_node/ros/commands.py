@@ -13,7 +13,7 @@ gets exactly one answer on ``events``::
 
 ``seq`` counts answers from 1; ``request_id`` echoes the request's own
 (null without one); ``ids`` are inclusive ``[first, last]`` ranges. The
-checks themselves live in :mod:`collision_node.physics.commands`; this
+checks themselves live in :mod:`collision_node.physics.model.world_commands`; this
 module only routes messages and formats answers.
 
 While a slice of steps runs (node.py, stepper.py) a request waits for
@@ -39,10 +39,11 @@ from std_srvs.srv import SetBool, Trigger
 
 from msg_adapters.strings import string_bytes, string_size, string_text, StringMessageError
 
-from ..physics.commands import (delete_request, id_ranges, impulse_request, parse_request,
-                                request_id_of, spawn_request, step_count, teleport_request)
-from ..physics.guard import MAX_TEXT_BYTES
-from ..physics.validation import SceneError
+from ..physics.model.world_commands import (delete_request, id_ranges, impulse_request,
+                                            parse_request, request_id_of, spawn_request,
+                                            step_count, teleport_request)
+from ..physics.model.guard import MAX_TEXT_BYTES
+from ..physics.model.validation import SceneError
 from .qos import COMMAND_QOS, EVENTS_QOS, SERVICE_QOS
 
 MAX_REASON = 400             # characters of a refusal reason in an answer
@@ -69,6 +70,12 @@ LATER = None
 # Seconds a reset service call waits for the step in flight before it is
 # answered anyway (the reset then follows that step).
 RESET_REPLY_WAIT = 0.05
+
+
+def out_of_memory(error: MemoryError, doing: str) -> str:
+    """Return one line saying a ``MemoryError`` stopped ``doing`` (it has few words of its own)."""
+    detail = ' '.join(str(error).split())[:80]
+    return f'out of memory {doing} (MemoryError{": " + detail if detail else ""})'
 
 
 class LogBudget:
@@ -248,6 +255,8 @@ class CommandInterface:
             fields = handler(data)
         except SceneError as error:
             reason = str(error)
+        except MemoryError as error:
+            reason = f'{request}: {out_of_memory(error, "handling the request")}'
         except Exception as error:  # noqa: B902 - a bad request must never stop the node
             reason = f'{request}: {type(error).__name__}: {error}'
         else:

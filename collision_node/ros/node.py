@@ -1,14 +1,15 @@
 """The collision_node ROS 2 node: a live particle world on topics.
 
 The node owns timing and ROS I/O only: the physics is a core
-:class:`~collision_node.physics.world.World`, and every numpy-to-message
+:class:`~collision_node.physics.step.world.World`, and every numpy-to-message
 conversion lives in :mod:`msg_adapters`. Topics, QoS and parameters are
-tabled in the README (section "The ROS 2 node").
+tabled in docs/node.md.
 """
 
 from __future__ import annotations
 
 import json
+import sys
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -18,8 +19,9 @@ import rclpy
 from geometry_msgs.msg import PoseArray, VelocityStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
-from rclpy.exceptions import ParameterException
+from rclpy.exceptions import NameValidationException, ParameterException
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock as ClockMsg
@@ -27,16 +29,19 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
-from msg_adapters import (clock_message, marker_array_bytes, point_cloud_bytes,
-                          pose_array_bytes, velocities_bytes)
+from msg_adapters import clock_bytes, velocities_bytes
+from msg_adapters.strings import string_bytes
 
-from ..physics.accuracy import parse_accuracy_text
-from ..physics.kernels import prepare as prepare_kernels
-from ..physics.scene import load_scene
-from ..physics.validation import SceneError
-from ..physics.world import NonFiniteStateError, World
+from ..physics.model.accuracy import parse_accuracy_text
+from ..physics.step.kernels import prepare as prepare_kernels
+from ..physics.model.scene import load_scene
+from ..physics.model.validation import SceneError
+from ..physics.step.world import NonFiniteStateError, World
+from ..recording.bag import BagTargetError, check_target
+from ..recording.definitions import DefinitionError
+from ..recording.recorder import FRAME_MESSAGES, Recorder
 from .cli import check_command_line
-from .commands import CommandInterface, DRAIN_SECONDS
+from .commands import CommandInterface, DRAIN_SECONDS, out_of_memory
 from .pacing import came_short, Lag, Pacer, RateMeter, STEP_BUDGET
 from .parameters import (as_double, DEFAULT_SCENE, integers_as_doubles, invalid_parameter,
                          PARAMETERS)
@@ -46,6 +51,7 @@ from .status import status_report
 from .stepper import SliceResult, Stepper
 
 NODE_NAME = 'collision_node'
+RCLError = _rclpy.RCLError
 STATUS_PERIOD = 0.5          # s of wall time between status messages (and after each change)
 # Share of the node's time the statuses after commands may take at most (see flush_status).
 STATUS_SHARE = 0.1
@@ -98,6 +104,9 @@ class CollisionNode(Node):
         problem = invalid_parameter(value)
         if problem:
             raise SceneError(f'parameter {problem}')
+        if value['record']:
+            # Refused before the scene is even loaded.
+            self._record_target_check(value['record'], check_target)
         self.scene = load_scene(value['scene'] or DEFAULT_SCENE)
         if value['accuracy']:
             self.scene = self.scene.with_accuracy(
@@ -152,6 +161,12 @@ class CollisionNode(Node):
         self._status_flush.cancel()
         self.reports = Reports(self, self.status, self.steady,   # /diagnostics, collisions
                                when_idle=self.when_idle)
+        self.state_publishers = {'poses': self.pub_poses, 'state': self.pub_state,
+                                 'markers': self.pub_markers}
+        self.recorder: Optional[Recorder] = None
+        self.recording_reported = False
+        if value['record']:
+            self._record_target_check(value['record'], self._start_recording)
         self.add_pre_set_parameters_callback(integers_as_doubles)
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -281,8 +296,6 @@ class CollisionNode(Node):
         elif self.plan is not None:
             self.plan.done += result.steps
         if result.error is not None:
-            if not isinstance(result.error, NonFiniteStateError):
-                raise result.error
             self._stop_stepping(result.error)
         if self.plan is not None and not result.interrupted:
             # The tick's steps are done (or its budget spent): publish first, so
@@ -298,16 +311,30 @@ class CollisionNode(Node):
         else:
             self._continue()
 
-    def _stop_stepping(self, error: NonFiniteStateError) -> None:
-        """Stop on a non-finite state: no further step until a reset."""
-        self.failed = str(error)
-        self.get_logger().error(f'stopped stepping: {error}; reset to go on')
+    def _stop_stepping(self, error: BaseException) -> None:
+        """Stop on a non-finite state or a MemoryError: no further step until a reset.
+
+        A MemoryError may leave the step half done: the status carries the
+        error and /diagnostics reports ERROR until a reset, as on a non-finite
+        state. Any other exception of a step is a bug and is raised.
+        """
+        request = self.step_request
+        if isinstance(error, MemoryError):
+            doing = (f'in step {self.world.steps + 1}' if request is None else
+                     f'in step {request.done + 1} of {request.count}')
+            self.failed = out_of_memory(error, doing)
+            reason = f'step: {self.failed}; reset to go on'
+        elif isinstance(error, NonFiniteStateError):
+            self.failed = str(error)
+            reason = (f'step: stopped after {request.done} of {request.count} steps: {error}'
+                      if request is not None else '')
+        else:
+            raise error
+        self.get_logger().error(f'stopped stepping: {self.failed}; reset to go on')
         self.plan = None
-        if self.step_request is not None:
-            request, self.step_request = self.step_request, None
-            self.commands.refuse('step', request.request_id,
-                                 f'step: stopped after {request.done} of {request.count} '
-                                 f'steps: {error}')
+        if request is not None:
+            self.step_request = None
+            self.commands.refuse('step', request.request_id, reason)
 
     def _continue(self) -> None:
         """Begin the next slice of the step request or the tick under way, or end them."""
@@ -404,23 +431,32 @@ class CollisionNode(Node):
         self.publish_outputs()
 
     def publish_outputs(self) -> None:
-        """Publish the current state; all messages carry the same stamp and frame."""
+        """Publish the current state; all messages carry the same stamp and frame.
+
+        A message is built only when somebody subscribes or the node records;
+        the recording gets the bytes that are published.
+        """
         s, t, frame = self.world.state, self.world.time, self.frame_id
+        recorder = self.recorder if self.recorder is not None and self.recorder.active else None
         if self.publish_clock:
-            self.pub_clock.publish(clock_message(t))
-        if self.pub_poses.get_subscription_count():
-            self.pub_poses.publish(pose_array_bytes(s.position, s.orientation, t, frame))
-        if self.pub_state.get_subscription_count():
-            self.pub_state.publish(point_cloud_bytes(s.ids, s.position, s.velocity, s.radius,
-                                                     s.inv_mass, t, frame))
-        if self.pub_markers.get_subscription_count():
-            self.pub_markers.publish(marker_array_bytes(s.position, s.radius, s.inv_mass, t,
-                                                        frame))
+            clock = clock_bytes(t)
+            self.pub_clock.publish(clock)
+            if recorder is not None:
+                recorder.write('clock', clock, t)
+        for key, publisher in self.state_publishers.items():
+            listened = publisher.get_subscription_count() > 0
+            if listened or recorder is not None:
+                data = FRAME_MESSAGES[key](s, t, frame)
+                if listened:
+                    publisher.publish(data)
+                if recorder is not None:
+                    recorder.write(key, data, t)
         if self.pub_velocities.get_subscription_count():
             publish = self.pub_velocities.publish
             for message in velocities_bytes(s.ids, s.velocity, s.angular_velocity, t, frame):
                 publish(message)
         self.reports.publish_collisions(self.world, t, frame)
+        self._report_recording_error()
 
     def status(self) -> dict[str, Any]:
         """Return the node's status as a JSON-ready mapping."""
@@ -437,9 +473,13 @@ class CollisionNode(Node):
         self.when_idle('status', self._send_status)
 
     def _send_status(self) -> None:
-        """Build and publish the status now; note when, and what it cost."""
+        """Build, publish and record the status now; note when, and what it cost."""
         start = time.perf_counter()
-        self.pub_status.publish(String(data=json.dumps(self.status())))
+        data = string_bytes(json.dumps(self.status()))
+        self.pub_status.publish(data)
+        if self.recorder is not None:
+            self.recorder.write('status', data, self.world.time)
+            self._report_recording_error()
         self._status_sent = time.perf_counter()
         self._status_cost = self._status_sent - start
 
@@ -470,6 +510,57 @@ class CollisionNode(Node):
         self._status_flush.cancel()
         self.flush_status()
 
+    # -- recording (the bag itself is collision_node.recording) -----------
+
+    @staticmethod
+    def _record_target_check(path: str, action: Callable[[str], None]) -> None:
+        """Run ``action(path)``; a path that cannot become a bag is a parameter error."""
+        try:
+            action(path)
+        except BagTargetError as error:
+            raise BagTargetError(f'parameter record: {path}: {error}') from None
+        except OSError as error:
+            raise BagTargetError(f'parameter record: {path}: {error.strerror or error}'
+                                 ) from None
+
+    def _start_recording(self, path: str) -> None:
+        """Open the bag under the topics' resolved names; impacts are recorded from now on."""
+        names = {key: publisher.topic_name for key, publisher in
+                 [*self.state_publishers.items(), ('clock', self.pub_clock),
+                  ('status', self.pub_status), ('collisions', self.reports.pub_collisions)]}
+        self.recorder = Recorder(path, names)
+        self.reports.recorder = self.recorder
+        self.reports.follow_listeners(self.world)
+        self.get_logger().info(f'recording into {path} (rosbag2, MCAP)')
+
+    def _report_recording_error(self) -> None:
+        """Log once that the recording stopped (a full disk); the node goes on."""
+        recorder = self.recorder
+        if recorder is not None and recorder.error is not None and not self.recording_reported:
+            self.recording_reported = True
+            self.get_logger().error(f'record {recorder.path}: {recorder.describe_error()}; '
+                                    'the node goes on without recording')
+
+    def close_recording(self) -> None:
+        """Finish the bag (index, summary, metadata.yaml); say so, or why it could not."""
+        recorder = self.recorder
+        if recorder is None or recorder.bag.closed and recorder.error is None:
+            return
+        recorder.close()
+        # After Ctrl-C or SIGTERM the context is gone, and with it /rosout: a logger
+        # of its own logs to the console only.
+        logger = rclpy.logging.get_logger(f'{self.get_logger().name}.recording')
+        if recorder.error is None:
+            logger.info(f'recorded {recorder.bag.message_count} messages into {recorder.path}')
+        elif not self.recording_reported:
+            self.recording_reported = True
+            logger.error(f'record {recorder.path}: {recorder.describe_error()}')
+
+    def destroy_node(self) -> None:
+        """Finish the recording, then destroy the node."""
+        self.close_recording()
+        super().destroy_node()
+
     # -- commands (the topics and services are in commands.py) ------------
 
     def reset_world(self) -> str:
@@ -495,7 +586,13 @@ def main(args: Optional[list[str]] = None) -> int:
     code = check_command_line(args)
     if code is not None:
         return code
-    rclpy.init(args=args)
+    try:
+        rclpy.init(args=args)
+    except RCLError as error:
+        # What check_command_line could not see (an environment rcl refuses).
+        print(f'collision_node: error: cannot start ROS: {" ".join(str(error).split())[:300]}',
+              file=sys.stderr)
+        return 2
     node = None
     try:
         # Readers that free each request once taken (qos.py says why).
@@ -504,8 +601,14 @@ def main(args: Optional[list[str]] = None) -> int:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (SceneError, ParameterException) as error:
+    except (SceneError, ParameterException, NameValidationException, DefinitionError,
+            BagTargetError) as error:
+        # NameValidationException: a name rclpy refuses that rcl's parser let through.
         rclpy.logging.get_logger(NODE_NAME).error(' '.join(str(error).split()))
+        return 2
+    except MemoryError as error:
+        doing = 'while starting' if node is None else 'in a callback'
+        rclpy.logging.get_logger(NODE_NAME).error(out_of_memory(error, doing))
         return 2
     except Exception:
         # A signal during start-up shuts the context down under the

@@ -10,8 +10,23 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
                                 ParameterType)
 from rclpy.parameter import Parameter
 
+from ..physics.model.scene import MAX_SCENE_PARTICLES
+
 # The shipped scene the node runs when no scene is given.
 DEFAULT_SCENE = 'elastic_break'
+# How a mapping is given on the command line: rcl reads a -p value as YAML, so
+# the mapping travels as a YAML string (quoted inside the shell word).
+ACCURACY_EXAMPLE = '-p "accuracy:=' + "'{preset: fast, substeps: 2}'" + '"'
+# Bounds of the numeric parameters (rcl refuses a value outside them, at start-up
+# or on a set, with the range in its reason; docs/scenes.md, "Limits").
+# Simulated seconds per wall second (default 1): six decades around real time;
+# outside them a value is almost surely a typing error.
+REAL_TIME_FACTOR_RANGE = (0.001, 1000.0)
+# Hz of wall time (default 30): below 0.1 Hz a tick comes more than 10 s after
+# the last; above 1000 Hz its period would be under a millisecond.
+PUBLISH_RATE_RANGE = (0.1, 1000.0)
+# Particles the world may hold (default 100,000): at most what one scene may.
+MAX_PARTICLES_RANGE = (1, MAX_SCENE_PARTICLES)
 
 
 def _descriptor(description: str, kind: int, read_only: bool = False,
@@ -33,15 +48,15 @@ PARAMETERS: dict[str, tuple[Any, ParameterDescriptor]] = {
         'Scene file path or shipped scene name (default: the elastic billiards break)',
         ParameterType.PARAMETER_STRING, read_only=True)),
     'accuracy': ('', _descriptor(
-        "Accuracy preset name or YAML mapping (e.g. '{preset: fast, substeps: 2}') "
-        "overriding the scene's; empty: the scene's",
+        "Accuracy preset name or YAML mapping overriding the scene's, a mapping "
+        f"quoted as a YAML string ({ACCURACY_EXAMPLE}); empty: the scene's",
         ParameterType.PARAMETER_STRING, read_only=True)),
     'real_time_factor': (1.0, _descriptor(
         'Simulated seconds per wall second (runtime-changeable)',
-        ParameterType.PARAMETER_DOUBLE, floats=(0.001, 1000.0))),
+        ParameterType.PARAMETER_DOUBLE, floats=REAL_TIME_FACTOR_RANGE)),
     'publish_rate': (30.0, _descriptor(
         'Hz of wall time at which outputs and /clock are published (runtime-changeable)',
-        ParameterType.PARAMETER_DOUBLE, floats=(0.1, 1000.0))),
+        ParameterType.PARAMETER_DOUBLE, floats=PUBLISH_RATE_RANGE)),
     'paused': (False, _descriptor(
         'Stop stepping; outputs keep being published (runtime-changeable)',
         ParameterType.PARAMETER_BOOL)),
@@ -53,7 +68,11 @@ PARAMETERS: dict[str, tuple[Any, ParameterDescriptor]] = {
         ParameterType.PARAMETER_STRING)),
     'max_particles': (100_000, _descriptor(
         'Most particles the world may hold; larger spawns are rejected',
-        ParameterType.PARAMETER_INTEGER, read_only=True, integers=(1, 10_000_000))),
+        ParameterType.PARAMETER_INTEGER, read_only=True, integers=MAX_PARTICLES_RANGE)),
+    'record': ('', _descriptor(
+        'Record what the node publishes as a rosbag2 bag (MCAP) in this new folder, '
+        'stamped with simulated time; empty: no recording',
+        ParameterType.PARAMETER_STRING, read_only=True)),
 }
 
 

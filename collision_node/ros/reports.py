@@ -4,7 +4,8 @@ Both are built only while somebody subscribes. The impacts cost the physics
 something to record, so recording is switched on when the first subscriber
 of ``particles/collisions`` appears and off when the last one leaves
 (``World.record_impacts``); each tick then publishes the impacts resolved
-since the previous one.
+since the previous one. A recording of the node (``recorder``) counts as a
+listener: it gets the same bytes.
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ from sensor_msgs.msg import PointCloud2
 
 from msg_adapters import impact_cloud_bytes
 
-from ..physics.world import World
+from ..physics.step.world import World
+from ..recording.recorder import Recorder
 from .diagnostics import diagnostic_array
 from .qos import COLLISIONS_QOS, DIAGNOSTICS_QOS
 
@@ -46,6 +48,7 @@ class Reports:
         self.timer = node.create_timer(
             DIAGNOSTICS_PERIOD, lambda: self.when_idle('diagnostics', self.publish_diagnostics),
             clock=steady)
+        self.recorder: Optional[Recorder] = None
 
     def publish_diagnostics(self) -> None:
         """Publish the node's health on /diagnostics, stamped with the node's clock."""
@@ -57,12 +60,21 @@ class Reports:
         """Publish the impacts since the last tick; have them recorded only while listened to."""
         if world.impact_log is not None:
             impacts = world.take_impacts()
-            if self.pub_collisions.get_subscription_count() > 0:
-                self.pub_collisions.publish(impact_cloud_bytes(impacts, seconds, frame_id))
+            listened = self.pub_collisions.get_subscription_count() > 0
+            if listened or self._recording():
+                data = impact_cloud_bytes(impacts, seconds, frame_id)
+                if listened:
+                    self.pub_collisions.publish(data)
+                if self._recording():
+                    self.recorder.write('collisions', data, seconds)
         self.follow_listeners(world)
 
+    def _recording(self) -> bool:
+        """Tell whether the node's recording takes the impacts."""
+        return self.recorder is not None and self.recorder.active
+
     def follow_listeners(self, world: World) -> None:
-        """Record impacts iff somebody subscribes (also called before a step request runs)."""
-        listening = self.pub_collisions.get_subscription_count() > 0
+        """Record impacts iff somebody subscribes or the node records (also before a step)."""
+        listening = self.pub_collisions.get_subscription_count() > 0 or self._recording()
         if listening != (world.impact_log is not None):
             world.record_impacts(listening)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any, Optional
 
-from ..physics.world import World
+from ..physics.step.world import World
 
 
 def status_report(world: World, scene_name: str, rates: tuple[float, float], *,
@@ -32,7 +32,7 @@ def status_report(world: World, scene_name: str, rates: tuple[float, float], *,
         'recording_impacts': world.impact_log is not None,
         'collisions_per_second': collision_rate,
         'kinetic_energy': world.kinetic_energy(),
-        # Energy balance (see README, Effects): terms, losses per effect, error.
+        # Energy balance (docs/api.md): terms, losses per effect, error.
         'energy': world.energy(),
         'momentum': world.momentum().tolist(),
         'publish_rate': publish_rate,

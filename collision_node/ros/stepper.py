@@ -25,7 +25,7 @@ from typing import Callable, NamedTuple, Optional
 
 from rclpy.node import Node
 
-from ..physics.world import World
+from ..physics.step.world import World
 
 
 class SliceResult(NamedTuple):

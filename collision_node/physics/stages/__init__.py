@@ -1,1 +1,4 @@
-"""Stages of a step, one per module; ``physics.plan.build_pipeline`` assembles them."""
+"""Stages of a step, grouped by what they do, each beside its kernels.
+
+``physics.step.plan.build_pipeline`` assembles them.
+"""

@@ -1,0 +1,1 @@
+"""The contact law: impulses, friction, restitution and paths, written once."""

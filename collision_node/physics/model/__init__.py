@@ -1,0 +1,1 @@
+"""The model: particle state, scenes and their validation, effects, accuracy settings, energy."""

@@ -1,0 +1,197 @@
+"""Every tunable of the solver, in one place: its unit, its default, what changing it does.
+
+Stages and kernels read these names and define none of their own; the
+compiled kernels take them as compile-time constants, so a change here
+recompiles them (the kernel cache follows every physics source). Input
+limits (largest coordinate, speed, count) live with the validation that
+enforces them (``model/particles.py``, ``model/scene.py``).
+"""
+
+# --- Contact solve (stages/solve) ----------------------------------------------------------------
+
+# Closing speeds below this fraction of the restitution threshold count as
+# resolved, so sweeps over resting contact stop at rounding-level residues.
+RESIDUAL_FRACTION = 1.0e-3
+
+# An impulse marks its particles struck (see _run_dissipative) only if its
+# pair closed at this many times the restitution threshold. Closing speeds
+# also build up inside a resting stack whose sweeps did not converge in the
+# budget (in a column of 20 under `fast`: up to 8.7 times the threshold);
+# passing those on as shocks made the stack bounce and gain energy through
+# separation (measured: at factor 1 or 2 a column of 20 at e = 1 kept 0.2 to
+# 0.7 m/s and a 200-disc pile gained 4.4e-3 J in a step; at 10 neither).
+# The price: an impact slower than 10 thresholds (0.8 m/s at 240 Hz under
+# 9.81 m/s^2) onto resting balls is not passed on through them.
+STRIKE_FACTOR = 10.0
+
+# Passes of shock propagation at most (a particle resting on two others
+# needs a few: stopping it against one support can make it approach the
+# other).
+SHOCK_PASSES = 8
+
+# A particle within this fraction of its radius, plus WALL_ULPS floating-point
+# spacings at the plane's coordinate, of a wall plane touches it (the walls
+# stage places resting particles on the plane to rounding). Never a fraction
+# of the coordinate itself: 1e-9 of a plane at x = 1e9 m was a slop of 1 m.
+WALL_SLOP = 1.0e-9
+
+WALL_ULPS = 4.0
+
+# --- Swept contacts (stages/swept) ---------------------------------------------------------------
+
+# Under gravity, a pair (or a particle and a wall) closer than this fraction
+# of its contact distance at the step start is in resting contact (see
+# SweptContactStage._in_contact).
+TOUCH_SLOP = 1.0e-6
+
+# Relative margin of ``_out_of_reach``: far above the rounding of its
+# distance test (a few ulps) and of the root ``pair_time`` computes (at worst
+# about 3e-8 relative, for a grazing pair, where its discriminant cancels).
+REACH_MARGIN = 1.0e-6
+
+# Bisection steps that finish a root the closed form or the eigenvalues only
+# bracket (the parabola-sphere quartic of the swept stage and ``law/paths``).
+BISECTIONS = 60
+
+# --- Separation (stages/correction) --------------------------------------------------------------
+
+# Projection passes per step under gravity (one without: the lecture's).
+GRAVITY_PASSES = 4
+
+# --- Broadphase (stages/detection) ---------------------------------------------------------------
+
+# Reaches within one size class differ by less than this factor: the
+# searches of a class overshoot by at most this ratio in distance.
+CLASS_RATIO = 2.0
+
+# Skin of the Verlet list: about SKIN_STEPS steps of travel at the rms speed,
+# at most SKIN_MAX_RADII median radii (a wider skin costs more pairs than
+# the searches it saves), at least SKIN_MIN_RADII of them.
+SKIN_STEPS = 20.0
+
+SKIN_MAX_RADII = 1.5
+
+SKIN_MIN_RADII = 0.05
+
+# Search afresh once more than this share of the particles are movers.
+MAX_MOVER_SHARE = 0.02
+
+# Up to this many particles every pair is a candidate: cheaper than any
+# search for the handful of bodies of a cradle or a billiards table.
+ALL_PAIRS_UP_TO = 48
+
+# The relative slack of the pair test (``broadphase.QUERY_SLACK``, same value).
+PAIR_SLACK = 1e-9
+
+# Cell search boxes are widened by this much more: the exact test above
+# passes pairs up to the slack beyond reach_i + reach_j, and the box must
+# hold them all after the rounding of (x - corner) / cell.
+SCAN_SLACK = 1e-6
+
+# Cells are at least extent / 2^40 wide: integer cell indices stay < 2^41.
+MAX_CELLS_PER_AXIS = 2.0 ** 40
+
+# Cell width in the class's largest reach: 2 scans 3 cells per axis, 1 scans
+# 5 smaller ones (a box closer to the sphere searched: fewer candidates).
+CELL_REACHES = 2.0
+
+# A class whose occupied box has at most this many cells per particle (plus
+# a few) gets a dense table: no hashing, rows of cells read in one range.
+DENSE_CELLS_PER_ITEM = 16.0
+
+# Cells are this much wider than CELL_REACHES reaches: a search (at most two
+# reaches plus SCAN_SLACK) then stays within one cell of the query's cell
+# even after the rounding of (x - corner) / cell (at most about 2^-24 cells
+# in a dense table), so a dense class can scan its neighbour cells without
+# computing the search box (``_dense_pairs``).
+CELL_MARGIN = 4e-6
+
+# The bound on the cells per axis that rounding argument assumes.
+DENSE_AXIS_CELLS = 2 ** 24
+
+# --- Event-driven exact mode (stages/events) -----------------------------------------------------
+
+# Cells hold about this many particles (cells are never narrower than a
+# contact diameter): fewer means more cell crossings, more means more
+# neighbours per prediction. A crossing predicts only the newly entered layer
+# of cells, so small cells pay: 0.25 was about the fastest of 1, 0.7, 0.5,
+# 0.35, 0.25 and 0.1 (docs/performance.md).
+PARTICLES_PER_CELL = 0.25
+
+# Steps in a row that go straight to the step solver after fallbacks, at most.
+MAX_FALLBACK_HOLD = 63
+
+# Pair impacts a particle's candidate list holds: one more drops the latest
+# and schedules a fresh prediction of the particle at its time (nothing is
+# lost; a longer list means fewer refreshes and longer scans per event).
+CANDIDATES = 8
+
+# Slots of the cell table per particle, at most (an open scene that spreads
+# out shares slots between far cells; the neighbour query tells them apart).
+SLOTS_PER_PARTICLE = 8
+
+# A contact rests when its gap is at most this fraction of r_i + r_j ...
+RESTING_GAP = 1e-9
+
+# ... plus this many floating-point spacings of the largest coordinate involved.
+RESTING_ULPS = 64.0
+
+# Resting partners a particle can hold (12 touch an equal sphere in 3-D;
+# overlapping or mixed sizes can touch more). More ends the exact attempt.
+PARTNERS = 16
+
+# Both solves sweep over-relaxed to their tolerance, then plainly (Gauss-
+# Seidel) to it again: a chain or a pile of n rows needs about n^2 plain
+# sweeps but about n over-relaxed ones (the 500-disc pile: 2,000 to 5,000
+# plain sweeps a step, measured), and the plain ones leave a lone contact
+# solved exactly (a ball on a floor: speed and acceleration exactly 0).
+OVER_RELAXATION = 1.6
+
+# Sweeps end when no resting normal speed exceeds this fraction of the
+# resting speed, and when no force changes any relative acceleration by
+# more than this fraction of |g|; at most MAX_SWEEPS of each.
+# (1e-11 |g| leaves a packed pile sinking into itself by ½ 1e-10 dt^2,
+# 1e-15 m a step at 240 Hz; 1e-13 |g| cost the 500-disc pile 3 to 6 times
+# the sweeps.)
+VELOCITY_TOLERANCE = 1e-12
+
+ACCELERATION_TOLERANCE = 1e-11
+
+MAX_SWEEPS = 20000
+
+# --- Drag (stages/motion) ------------------------------------------------------------------------
+
+# Below this lambda dt, (dt - phi) / lambda uses its Taylor series (the
+# closed form cancels there); the first term left out is below 5e-14
+# relative, as is the cancellation error just above the limit.
+SERIES_LIMIT = 1.0e-2
+
+# --- Sleeping islands (stages/sleeping) ----------------------------------------------------------
+
+# Particles closer than this share of their radii sum (gap) are in contact
+# for islands and waking: resting contacts end a step touching up to the
+# solver's slop, and the broadphase's list always holds pairs this near.
+CONTACT_MARGIN = 0.02
+
+# Up to this many (awake, sleeping) pairs the wake stage tests every pair
+# directly; beyond, a k-d tree of the sleepers finds the candidates.
+DIRECT_PAIRS = 1 << 15
+
+# --- Restitution threshold (model/effects) -------------------------------------------------------
+
+# Default restitution threshold under gravity, in multiples of |g| dt: the
+# closing speed gravity builds in one or two steps of resting contact is
+# treated as resting (perfectly inelastic), so a resting pile does not
+# micro-bounce.
+GRAVITY_THRESHOLD_STEPS = 2.0
+
+# --- Colouring (law/coloring) --------------------------------------------------------------------
+
+# Box2D v3 uses 24 colours; a bitmask per particle holds up to 64.
+MAX_COLORS = 32
+
+# --- Backends ----------------------------------------------------------------------------------
+
+# How a stage may run: its compiled kernels (the default and what every preset
+# uses) or the vectorised numpy law (the tests' reference).
+BACKENDS = ('kernel', 'numpy')

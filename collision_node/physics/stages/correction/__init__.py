@@ -1,0 +1,1 @@
+"""The separation stage: overlap removed without adding energy, with its kernels."""

@@ -1,0 +1,249 @@
+"""Broadphase: candidate pairs whose spheres may overlap.
+
+Particles are sorted into size classes by their reach (radius plus any
+margin): class k holds reaches in [m * 2^k, m * 2^(k+1)), m the smallest
+reach. Each class gets a uniform cell grid, cells twice the class's largest
+reach wide, built by a counting sort in compiled code (``grid_kernels``;
+dense rows of cells for compact scenes, hashed cells for scattered ones).
+Each particle is searched in its own class and in every larger class
+within its own reach plus that class's largest (at most 3 cells per
+axis). Within a class reaches differ by less than a factor of two, so
+these searches find only a bounded multiple of the pairs that really are
+near, whatever the mix of sizes: ten-times-larger particles are never
+paired all-to-all, and a small particle is never searched with a large
+one's reach. Every pair found is then checked against its own
+reach_i + reach_j, so the result is exactly
+the set of near pairs. Per-step cost grows about linearly with the count.
+
+The stage does not search every step. It keeps a Verlet list: the pairs
+within r_i + r_j + skin at the last search, valid as long as no two
+particles have together moved more than the skin since (two particles
+each moved at most skin/2 cannot have closed a gap larger than the skin).
+The check uses the actual positions, so it covers drift, separation, walls
+and any other stage. The few fast particles that moved more than skin/2
+("movers") are queried on their own against the class grids of the last
+search instead of forcing a full search; only when movers become common
+is the grid rebuilt. The result is exactly the set a fresh search would need.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from . import grid_kernels
+from .grid_kernels import Grid
+from ...step.pipeline import Stage, StepContext
+from ...model.tunables import (CLASS_RATIO, SKIN_STEPS, SKIN_MAX_RADII, SKIN_MIN_RADII,
+                               MAX_MOVER_SHARE, ALL_PAIRS_UP_TO)
+
+# The pair test |p_i - p_j|^2 <= (reach_i + reach_j)^2 (1 + QUERY_SLACK) is a
+# little generous, so that rounding never drops a pair; the grid's cell
+# search is wider still (``grid_kernels.SCAN_SLACK``).
+QUERY_SLACK = grid_kernels.PAIR_SLACK
+
+_EMPTY = np.zeros(0, dtype=np.int64)
+
+
+@dataclass
+class PairSearch:
+    """One search: its pairs and the class grids a later mover query needs."""
+
+    i: np.ndarray
+    j: np.ndarray
+    grid: Optional[Grid] = None
+
+
+def size_classes(reach: np.ndarray) -> list[np.ndarray]:
+    """Split particle indices into classes whose reaches differ by < CLASS_RATIO.
+
+    Class k holds reaches in [m * CLASS_RATIO^k, m * CLASS_RATIO^(k+1)),
+    m the smallest positive reach (reaches of 0 join the first class).
+    Returns the non-empty classes, smallest reach first, indices ascending.
+    """
+    largest = float(reach.max()) if reach.size else 0.0
+    if largest > 0.0 and largest < 1.9 * float(reach.min()):
+        # All reaches within a factor 1.9 (a gas of one size): one class, the
+        # logarithms below would give every particle level 0.
+        return [np.arange(reach.shape[0])]
+    positive = reach[reach > 0.0]
+    if positive.size == 0:
+        return [np.arange(reach.shape[0])]
+    smallest = float(positive.min())
+    with np.errstate(divide='ignore'):
+        level = np.floor(np.log(np.maximum(reach, smallest) / smallest)
+                         / np.log(CLASS_RATIO)).astype(np.int64)
+    if level.max() == 0:
+        return [np.arange(reach.shape[0])]
+    order = np.argsort(level, kind='stable')           # ascending index within a level
+    bounds = np.flatnonzero(np.diff(level[order])) + 1
+    return np.split(order, bounds)
+
+
+def search_pairs(position: np.ndarray, reach: np.ndarray) -> PairSearch:
+    """Search all pairs with |p_i - p_j| <= reach_i + reach_j, exactly those."""
+    n = position.shape[0]
+    if n < 2:
+        return PairSearch(_EMPTY, _EMPTY, None)
+    reach = np.ascontiguousarray(reach, dtype=np.float64)
+    grid = grid_kernels.make_grid(position, reach, size_classes(reach))
+    pairs = grid_kernels.grid_pairs(reach, grid)
+    return PairSearch(pairs.first, pairs.second, grid)
+
+
+def candidate_pairs(position: np.ndarray, reach: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return index arrays (i < j) of the pairs with |p_i - p_j| <= reach_i + reach_j.
+
+    ``reach`` is each particle's radius plus any margin (for example the
+    distance it may travel in a step). Pairs come sorted by (i, j) so that
+    every later stage sees them in a deterministic order. The set is exact
+    up to a relative slack of 1e-9 on the reach (and offsets whose squares
+    underflow); the narrowphase keeps the real contacts.
+    """
+    search = search_pairs(position, reach)
+    return search.i, search.j
+
+
+def _upper_median(values: np.ndarray) -> float:
+    """Return the upper median (np.median costs ten times more on small arrays)."""
+    middle = values.shape[0] // 2
+    return float(np.partition(values, middle)[middle])
+
+
+class BroadphaseStage(Stage):
+    """Find candidate pairs: a Verlet list over cell-grid searches.
+
+    The list is tied to the state's ``radius`` array object and particle
+    count: spawning (a new, longer state) or assigning a new radius array
+    starts a fresh search. Radii changed in place would not be seen; no
+    stage does that. Positions may change in any way between steps.
+    """
+
+    name = 'broadphase'
+
+    def __init__(self) -> None:
+        """Start without a list; the first step searches."""
+        self._search: Optional[PairSearch] = None
+        self._keys = _EMPTY            # sorted i * n + j of the listed pairs
+        self._built_position: Optional[np.ndarray] = None
+        self._built_radius: Optional[np.ndarray] = None
+        self._half_skin = 0.0
+        # The listed radii in the grid's item order, and each size class's largest.
+        self._partners = grid_kernels.Partners(np.zeros(0), np.zeros(0))
+        self._all_pairs = (_EMPTY, _EMPTY)
+        self._all_pairs_count = -1
+        self._median_radius, self._median_of = 0.0, None
+        self._direct = False           # allowances too large for the skin: search each step
+        self.searches = 0              # full searches so far (for tests and benchmarks)
+        self.mover_updates = 0         # steps that patched the list with mover pairs
+
+    def run(self, ctx: StepContext) -> None:
+        """Store candidate pairs on the context."""
+        state = ctx.state
+        ctx.pair_i, ctx.pair_j = self.find(state.position, state.radius, state.velocity,
+                                           state.inv_mass, ctx.dt)
+
+    def find(self, position: np.ndarray, radius: np.ndarray, velocity: np.ndarray,
+             inv_mass: np.ndarray, dt: float, extra: Optional[np.ndarray] = None
+             ) -> tuple[np.ndarray, np.ndarray]:
+        """Return every pair (i < j, sorted) with |p_i - p_j| <= r_i + e_i + r_j + e_j.
+
+        ``extra`` (e, default 0) is a per-particle allowance on top of the
+        radius, e.g. |v| dt for swept contacts. It counts against the skin
+        like a displacement: a particle whose displacement since the search
+        plus e exceeds skin/2 is a mover, and movers are queried with their
+        allowance, so the list stays exactly what a fresh search would need.
+        """
+        n = position.shape[0]
+        if n <= ALL_PAIRS_UP_TO:
+            if self._all_pairs_count != n:
+                self._all_pairs = np.triu_indices(n, k=1)   # sorted by (i, j)
+                self._all_pairs_count = n
+            return self._all_pairs
+        if extra is None:
+            extra = np.zeros(n)
+        if self._direct and self._list_matches(position, radius):
+            # Allowances outgrew the skin last step: search directly until
+            # they fit again, instead of rebuilding a list nobody can reuse.
+            if np.count_nonzero(extra > self._half_skin) > MAX_MOVER_SHARE * n:
+                return candidate_pairs(position, radius + extra)
+            self._direct = False
+            self._built_position = None
+        if not self._list_matches(position, radius):
+            self._rebuild(position, radius, velocity, inv_mass, dt)
+        movers = self._movers(position, extra)
+        if movers.size > MAX_MOVER_SHARE * n:
+            self._rebuild(position, radius, velocity, inv_mass, dt)
+            movers = self._movers(position, extra)
+            if movers.size > MAX_MOVER_SHARE * n:
+                self._direct = True
+                return candidate_pairs(position, radius + extra)
+        if movers.size == 0:
+            return self._search.i, self._search.j
+        self.mover_updates += 1
+        return self._with_mover_pairs(position, radius, movers, extra)
+
+    def _movers(self, position: np.ndarray, extra: np.ndarray) -> np.ndarray:
+        """Return the particles whose displacement plus allowance exceeds skin/2."""
+        return grid_kernels.movers(grid_kernels.as_points(position), self._built_position,
+                                   np.ascontiguousarray(extra, dtype=np.float64),
+                                   self._half_skin)
+
+    def _list_matches(self, position: np.ndarray, radius: np.ndarray) -> bool:
+        """Return whether the list was built for these particles (count and radii)."""
+        return (self._built_position is not None
+                and self._built_position.shape == position.shape
+                and self._built_radius is radius)
+
+    def _rebuild(self, position: np.ndarray, radius: np.ndarray, velocity: np.ndarray,
+                 inv_mass: np.ndarray, dt: float) -> None:
+        """Search afresh with reach = radius + skin / 2 and remember the positions."""
+        n = position.shape[0]
+        if self._median_of is not radius:
+            # The list is tied to this radius array: its median is computed once.
+            self._median_radius, self._median_of = _upper_median(radius), radius
+        median_radius = self._median_radius
+        dynamic = inv_mass > 0.0
+        rms_speed = float(np.sqrt(np.mean(np.einsum('ij,ij->i', velocity[dynamic],
+                                                    velocity[dynamic])))) \
+            if dynamic.any() else 0.0
+        skin = min(SKIN_MAX_RADII * median_radius,
+                   max(SKIN_STEPS * dt * rms_speed, SKIN_MIN_RADII * median_radius))
+        self._half_skin = 0.5 * skin
+        self._search = search_pairs(position, radius + self._half_skin)
+        self._keys = self._search.i * n + self._search.j
+        self._built_position = grid_kernels.as_points(position).copy()
+        self._built_radius = radius
+        self._partners = grid_kernels.partner_terms(radius, self._search.grid)
+        self.searches += 1
+
+    def _with_mover_pairs(self, position: np.ndarray, radius: np.ndarray,
+                          movers: np.ndarray, extra: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray]:
+        """Return the listed pairs plus every pair a mover may now overlap (i < j, sorted)."""
+        n = position.shape[0]
+        mover_reach = radius[movers] + extra[movers] + self._half_skin
+        # A mover against a particle that moved <= skin/2: that particle's
+        # listed position is within r_i + r_j + skin/2 of the mover now.
+        # With an allowance e_j <= skin/2 - displacement_j for non-movers,
+        # the same bound holds with the mover's own e added.
+        near = grid_kernels.grid_query(grid_kernels.as_points(position), movers, mover_reach,
+                                       self._partners, self._search.grid)
+        # Movers against movers, at their current positions (all pairs if few).
+        if movers.size <= ALL_PAIRS_UP_TO:
+            between_i, between_j = np.triu_indices(movers.size, k=1)
+        else:
+            between = search_pairs(position[movers], radius[movers] + extra[movers])
+            between_i, between_j = between.i, between.j
+        listed = grid_kernels.Pairs(self._search.i, self._search.j)
+        extra_pairs = grid_kernels.Pairs(np.concatenate([near.first, movers[between_i]]),
+                                         np.concatenate([near.second, movers[between_j]]))
+        merged = grid_kernels.merge_pairs(self._keys, listed, extra_pairs, n)
+        return merged.first, merged.second
+
+    def describe(self) -> str:
+        """Say what the stage does."""
+        return ('hashed cell grid per size class (compiled), pairs within r_i + r_j + skin, '
+                'reused while no particle pair moved a skin (fast movers queried alone)')

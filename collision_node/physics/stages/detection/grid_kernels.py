@@ -1,0 +1,560 @@
+"""The broadphase's searches, compiled: a hashed cell grid per size class.
+
+``broadphase.size_classes`` splits particles into classes whose reaches
+differ by less than a factor of two. Each class gets a uniform grid of
+cubic cells, twice its largest reach wide, built by a counting sort: cells
+are hashed into about twice as many buckets as the class has particles, so
+the grid costs O(n) memory whatever the scene's extent (a particle at 1e9 m
+next to a cluster at the origin adds one bucket, not 1e9 / cell cells), and
+each bucket's particles are stored contiguously with their cell and
+position (cache-friendly scans). A class whose occupied box is small gets a
+dense table instead (one bucket per cell, no hashing).
+
+A particle of reach r is searched in its own class and in every larger
+class k, within r + R_k of its centre (R_k the class's largest reach): at
+most 3 cells per axis, because r <= R_k and the cells are 2 R_k wide. A
+large particle is never searched with a small one's grid, nor a small one
+with a large one's reach, so the work stays proportional to the number of
+near pairs for any mix of sizes. A pair is kept only if
+|p_i - p_j|^2 <= (reach_i + reach_j)^2 (1 + PAIR_SLACK); pairs come out
+sorted by (i, j) (a counting sort by i, then each row sorted by j).
+
+One size class in a dense table (a gas) takes a shorter path,
+``_dense_pairs``: cells are a little wider than any search (CELL_MARGIN),
+so each item scans its own row of cells from itself on and the next four
+rows in cell order, without computing a search box, and every candidate is
+written and kept by the count (no branch on the near test).
+
+Cell indices are measured from the lowest corner of all particles and a
+cell is never narrower than the scene's extent / 2^40, so they fit in
+64-bit integers at any scale. A query box with more cells than the class
+has particles (a very fast mover) scans the class's particles directly.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from ...step import numba_cache  # noqa: F401 (chooses numba's cache directory first)
+from ...law.primitives import dot3
+
+from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
+from ...model.tunables import (PAIR_SLACK, SCAN_SLACK, MAX_CELLS_PER_AXIS, CELL_REACHES,
+                               DENSE_CELLS_PER_ITEM, CELL_MARGIN, DENSE_AXIS_CELLS)
+
+# Multipliers of the cell hash (large odd constants: neighbouring cells
+# land in unrelated buckets).
+_H1, _H2, _H3 = 0x9E3779B97F4A7C15 - (1 << 64), 0xC2B2AE3D27D4EB4F - (1 << 64), 0x165667B19E3779F9
+
+
+class Grid(NamedTuple):
+    """One grid per size class; classes in ``order``, ``class_start`` slices."""
+
+    corner: np.ndarray          # (3,) lowest corner of all particles, m
+    cell: np.ndarray            # (classes,) cell width, m
+    class_reach: np.ndarray     # (classes,) largest reach of each class, m
+    class_start: np.ndarray     # (classes + 1,) each class's slice of the items
+    low: np.ndarray             # (classes, 3) lowest occupied cell index per axis
+    high: np.ndarray            # (classes, 3) highest occupied cell index per axis
+    dense: np.ndarray           # (classes,) one bucket per cell (else hashed cells)
+    table_start: np.ndarray     # (classes + 1,) each class's slice of ``bucket``
+    bucket: np.ndarray          # bucket b's items are bucket[b] .. bucket[b + 1] - 1
+    item: np.ndarray            # particle index of each item
+    item_cell: np.ndarray       # (n, 3) cell index of each item
+    item_position: np.ndarray   # (n, 3) position of each item, m
+
+
+class Pairs(NamedTuple):
+    """Particle index pairs (first[k], second[k]): what a search returns."""
+
+    first: np.ndarray
+    second: np.ndarray
+
+
+@njit(cache=True, inline='always')
+def _hash(cx, cy, cz, mask):
+    """Return the bucket of cell (cx, cy, cz) in a table of mask + 1 buckets."""
+    h = cx * _H1 + cy * _H2 + cz * _H3
+    h ^= h >> 31
+    return h & mask
+
+
+@njit(cache=True, inline='always')
+def _dense_bucket(cx, cy, cz, lx, ly, lz, nx, ny):
+    """Return the bucket of cell (cx, cy, cz) in a dense table (x fastest)."""
+    return ((cz - lz) * ny + (cy - ly)) * nx + (cx - lx)
+
+
+@njit(cache=True, nogil=True)
+def build_grid(position, reach, order, class_start):
+    """Return every class's grid (``Grid``).
+
+    ``order`` lists the particles class by class (``class_start`` slices);
+    within a class the items are sorted by bucket, in ``order``'s order. A
+    class whose occupied box has at most DENSE_CELLS_PER_ITEM cells per
+    particle gets a dense table (one bucket per cell, rows of cells along
+    x contiguous), any other a hashed one.
+    """
+    n = position.shape[0]
+    classes = class_start.size - 1
+    corner = np.empty(3)
+    extent = 0.0
+    for d in range(3):
+        lo, hi = position[0, d], position[0, d]
+        for p in range(1, n):
+            x = position[p, d]
+            if x < lo:
+                lo = x
+            elif x > hi:
+                hi = x
+        corner[d] = lo
+        extent = max(extent, hi - lo)
+    cell, class_reach = np.empty(classes), np.empty(classes)
+    low = np.empty((classes, 3), dtype=np.int64)
+    high = np.empty((classes, 3), dtype=np.int64)
+    dense = np.zeros(classes, dtype=np.bool_)
+    table_start = np.zeros(classes + 1, dtype=np.int64)
+    own_cell = np.empty((n, 3), dtype=np.int64)
+    for k in range(classes):
+        largest = 0.0
+        for m in range(class_start[k], class_start[k + 1]):
+            largest = max(largest, reach[order[m]])
+        class_reach[k] = largest
+        width = max(CELL_REACHES * largest * (1.0 + CELL_MARGIN),
+                    extent / MAX_CELLS_PER_AXIS)
+        cell[k] = width if width > 0.0 else 1.0
+        for d in range(3):
+            low[k, d], high[k, d] = np.iinfo(np.int64).max, np.iinfo(np.int64).min
+        for m in range(class_start[k], class_start[k + 1]):
+            p = order[m]
+            for d in range(3):
+                c = np.int64(np.floor((position[p, d] - corner[d]) / cell[k]))
+                own_cell[m, d] = c
+                low[k, d] = min(low[k, d], c)
+                high[k, d] = max(high[k, d], c)
+        members = class_start[k + 1] - class_start[k]
+        cells = 1.0
+        for d in range(3):
+            cells *= high[k, d] - low[k, d] + 1.0
+        if cells <= DENSE_CELLS_PER_ITEM * members + 64.0:
+            dense[k] = True
+            size = np.int64(cells)
+        else:
+            size = 2
+            while size < 2 * members:
+                size *= 2
+        table_start[k + 1] = table_start[k] + size + 1
+    bucket = np.zeros(table_start[classes], dtype=np.int64)
+    item = np.empty(n, dtype=np.int64)
+    item_cell = np.empty((n, 3), dtype=np.int64)
+    item_position = np.empty((n, 3))
+    own_bucket = np.empty(n, dtype=np.int64)
+    for k in range(classes):
+        base, mask = table_start[k], table_start[k + 1] - table_start[k] - 2
+        nx, ny = high[k, 0] - low[k, 0] + 1, high[k, 1] - low[k, 1] + 1
+        for m in range(class_start[k], class_start[k + 1]):
+            if dense[k]:
+                b = _dense_bucket(own_cell[m, 0], own_cell[m, 1], own_cell[m, 2], low[k, 0],
+                                  low[k, 1], low[k, 2], nx, ny)
+            else:
+                b = _hash(own_cell[m, 0], own_cell[m, 1], own_cell[m, 2], mask)
+            own_bucket[m] = b
+            bucket[base + b + 1] += 1
+        for b in range(base + 1, table_start[k + 1]):
+            bucket[b] += bucket[b - 1]
+        # bucket[base + b] is now where bucket b starts (relative to the class).
+        for m in range(class_start[k], class_start[k + 1]):
+            b = base + own_bucket[m]
+            at = class_start[k] + bucket[b]
+            bucket[b] += 1
+            p = order[m]
+            item[at] = p
+            for d in range(3):
+                item_cell[at, d] = own_cell[m, d]
+                item_position[at, d] = position[p, d]
+        # Filling moved each start to the next bucket's: shift back by one.
+        for b in range(table_start[k + 1] - 1, base, -1):
+            bucket[b] = bucket[b - 1] + class_start[k]
+        bucket[base] = class_start[k]
+    return Grid(corner, cell, class_reach, class_start, low, high, dense, table_start, bucket,
+                item, item_cell, item_position)
+
+
+@njit(cache=True, inline='always')
+def _near(ax, ay, az, bx, by, bz, limit):
+    """Return |a - b|^2 <= limit^2 (1 + PAIR_SLACK), the offset's square summed as einsum does."""
+    ox, oy, oz = ax - bx, ay - by, az - bz
+    return dot3(ox, oy, oz, ox, oy, oz) <= limit * limit * (1.0 + PAIR_SLACK)
+
+
+@njit(cache=True, inline='always')
+def _cell_range(value, search, corner, cell, low, high):
+    """Return the first and last cell index (clipped to low..high) within value +- search."""
+    first = max(np.floor((value - search - corner) / cell), float(low))
+    last = min(np.floor((value + search - corner) / cell), float(high))
+    return first, last
+
+
+@njit(cache=True, inline='always')
+def _scan_class(grid, k, point, search, query, after, own_reach, partner, out_a, out_b, count):
+    """Write (query, j) for every item j of class k near ``point``; return the new count.
+
+    The box searched is ``search`` around the point (x, y, z); each
+    candidate (item t, particle j) is kept when |point - p_j| is within
+    own_reach + partner[t] (``partner`` in item order); only items t >
+    ``after`` are taken (a class searched against itself from item
+    ``after``: each pair once). Pairs beyond the buffers' size are counted,
+    not written: the caller grows the buffers and searches again.
+    """
+    x, y, z = point
+    item, item_cell, item_position = grid.item, grid.item_cell, grid.item_position
+    bucket, low, high = grid.bucket, grid.low, grid.high
+    width = grid.cell[k]
+    ax, bx = _cell_range(x, search, grid.corner[0], width, low[k, 0], high[k, 0])
+    ay, by = _cell_range(y, search, grid.corner[1], width, low[k, 1], high[k, 1])
+    az, bz = _cell_range(z, search, grid.corner[2], width, low[k, 2], high[k, 2])
+    if ax > bx or ay > by or az > bz:
+        return count
+    capacity = out_a.size
+    start, stop = max(grid.class_start[k], after + 1), grid.class_start[k + 1]
+    if (bx - ax + 1.0) * (by - ay + 1.0) * (bz - az + 1.0) > stop - start:
+        # A box with more cells than there are particles to test: test them all.
+        for t in range(start, stop):
+            if _near(x, y, z, item_position[t, 0], item_position[t, 1], item_position[t, 2],
+                     own_reach + partner[t]):
+                if count < capacity:
+                    out_a[count], out_b[count] = query, item[t]
+                count += 1
+        return count
+    base = grid.table_start[k]
+    mask = grid.table_start[k + 1] - base - 2
+    if grid.dense[k]:
+        # One range of items per row of cells along x (the cells are exact).
+        # Items are sorted by row, so rows before ``after``'s are empty of
+        # items past it: the scan starts at the later of az and its layer.
+        lx, ly, lz = low[k, 0], low[k, 1], low[k, 2]
+        nx, ny = high[k, 0] - lx + 1, high[k, 1] - ly + 1
+        first, last = np.int64(ax), np.int64(bx)
+        for cz in range(np.int64(az), np.int64(bz) + 1):
+            for cy in range(np.int64(ay), np.int64(by) + 1):
+                row = base + _dense_bucket(0, cy, cz, lx, ly, lz, nx, ny)
+                for t in range(max(bucket[row + first], start), bucket[row + last + 1]):
+                    if _near(x, y, z, item_position[t, 0], item_position[t, 1],
+                             item_position[t, 2], own_reach + partner[t]):
+                        if count < capacity:
+                            out_a[count], out_b[count] = query, item[t]
+                        count += 1
+        return count
+    for cz in range(np.int64(az), np.int64(bz) + 1):
+        for cy in range(np.int64(ay), np.int64(by) + 1):
+            for cx in range(np.int64(ax), np.int64(bx) + 1):
+                b = base + _hash(cx, cy, cz, mask)
+                for t in range(max(bucket[b], start), bucket[b + 1]):
+                    if item_cell[t, 0] != cx or item_cell[t, 1] != cy or item_cell[t, 2] != cz:
+                        continue
+                    if _near(x, y, z, item_position[t, 0], item_position[t, 1],
+                             item_position[t, 2], own_reach + partner[t]):
+                        if count < capacity:
+                            out_a[count], out_b[count] = query, item[t]
+                        count += 1
+    return count
+
+
+@njit(cache=True)
+def _grown(out, count, size):
+    """Return a buffer of ``size`` holding the first ``count`` entries of ``out``."""
+    grown = np.empty(size, dtype=np.int64)
+    grown[:count] = out[:count]
+    return grown
+
+
+@njit(cache=True, nogil=True)
+def sort_pairs(a, b, count, n):
+    """Return the ``Pairs`` (min, max) of the first ``count`` of (a, b), sorted by (i, j).
+
+    A counting sort by i, then each row sorted by j (insertion sort for
+    short rows). Pairs are assumed distinct.
+    """
+    row = np.zeros(n + 1, dtype=np.int64)
+    for p in range(count):
+        row[min(a[p], b[p]) + 1] += 1
+    for r in range(n):
+        row[r + 1] += row[r]
+    fill = row[:n].copy()
+    first, second = np.empty(count, dtype=np.int64), np.empty(count, dtype=np.int64)
+    for p in range(count):
+        lo, hi = min(a[p], b[p]), max(a[p], b[p])
+        first[fill[lo]], second[fill[lo]] = lo, hi
+        fill[lo] += 1
+    for r in range(n):
+        start, stop = row[r], row[r + 1]
+        if stop - start > 32:
+            second[start:stop] = np.sort(second[start:stop])
+            continue
+        for s in range(start + 1, stop):
+            value = second[s]
+            t = s - 1
+            while t >= start and second[t] > value:
+                second[t + 1] = second[t]
+                t -= 1
+            second[t + 1] = value
+    return Pairs(first, second)
+
+
+@njit(cache=True, inline='always')
+def _append_near(first, stop, point, own_reach, query, item, item_position, partner, out_a,
+                 out_b, count):
+    """Append (query, item[t]) for items first <= t < stop near ``point``; return the count.
+
+    Branch-free: every candidate is written and the count advances only
+    for a near one (the caller guarantees room for stop - first more
+    pairs), so a near test that is true one time in six costs no
+    mispredicted branch.
+    """
+    x, y, z = point
+    for t in range(first, stop):
+        out_a[count] = query
+        out_b[count] = item[t]
+        count += _near(x, y, z, item_position[t, 0], item_position[t, 1], item_position[t, 2],
+                       own_reach + partner[t])
+    return count
+
+
+@njit(cache=True)
+def _dense_pairs(grid, item_reach, out_a, out_b):
+    """Write the unsorted pairs of a grid of one dense class; return their count.
+
+    Returns -1 when ``out_a`` / ``out_b`` may be too short (the caller
+    grows them and calls again): growing them here would make numba count
+    references to the buffers at every candidate, which doubles the cost.
+    Cells are wider than any search (CELL_MARGIN), so the items t > m of
+    the neighbour cells of item m's cell are exactly those of five rows of
+    cells along x: its own (from m on) and the next four in cell order (the
+    half of the 3 x 3 rows around it that comes later), each one range of
+    items. The exact test is ``_near``'s, so the set is ``_scan_class``'s.
+    """
+    item, item_cell, item_position = grid.item, grid.item_cell, grid.item_position
+    low, high, bucket = grid.low, grid.high, grid.bucket
+    n = item.size
+    capacity = out_a.size
+    count = 0
+    lx, ly, lz = low[0, 0], low[0, 1], low[0, 2]
+    nx, ny, nz = high[0, 0] - lx + 1, high[0, 1] - ly + 1, high[0, 2] - lz + 1
+    base = grid.table_start[0]
+    for m in range(n):
+        point = (item_position[m, 0], item_position[m, 1], item_position[m, 2])
+        own_reach = item_reach[m]
+        query = item[m]
+        cx, cy, cz = item_cell[m, 0] - lx, item_cell[m, 1] - ly, item_cell[m, 2] - lz
+        first_cell, last_cell = max(cx - 1, 0), min(cx + 1, nx - 1)
+        for r in range(5):
+            # Rows (cy, cz), (cy + 1, cz), then (cy - 1 .. cy + 1, cz + 1).
+            ry, rz = (cy + r, cz) if r < 2 else (cy + r - 3, cz + 1)
+            if ry < 0 or ry >= ny or rz >= nz:
+                continue
+            row = base + (rz * ny + ry) * nx
+            first = m + 1 if r == 0 else bucket[row + first_cell]
+            stop = bucket[row + last_cell + 1]
+            if count + (stop - first) > capacity:
+                return -1
+            count = _append_near(first, stop, point, own_reach, query, item, item_position,
+                                 item_reach, out_a, out_b, count)
+    return count
+
+
+@njit(cache=True)
+def _items_reach(reach, item):
+    """Return ``reach`` in the grid's item order."""
+    item_reach = np.empty(item.size)
+    for m in range(item.size):
+        item_reach[m] = reach[item[m]]
+    return item_reach
+
+
+@njit(cache=True)
+def _dense_grid_pairs(reach, grid):
+    """Return ``grid_pairs`` of a grid of one dense class (sorted by (i, j))."""
+    n = grid.item.size
+    item_reach = _items_reach(reach, grid.item)
+    size = 4 * n + 64
+    while True:
+        out_a, out_b = np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64)
+        count = _dense_pairs(grid, item_reach, out_a, out_b)
+        if count >= 0:
+            return sort_pairs(out_a, out_b, count, n)
+        size *= 4
+
+
+@njit(cache=True, nogil=True)
+def grid_pairs(reach, grid):
+    """Return the ``Pairs`` (i < j, sorted) with |p_i - p_j| <= reach_i + reach_j (and slack).
+
+    Positions are the grid's (as built). Each particle is searched in its
+    own class (each pair once, from its earlier item) and in every larger
+    class.
+    """
+    item_position, class_start, class_reach = grid.item_position, grid.class_start, \
+        grid.class_reach
+    n = grid.item.size
+    if class_start.size == 2 and grid.dense[0] and grid.cell[0] >= CELL_REACHES * \
+            class_reach[0] * (1.0 + CELL_MARGIN) and \
+            np.max(grid.high[0] - grid.low[0]) < DENSE_AXIS_CELLS:
+        # One dense class (a gas): the neighbour-cell scan, no search boxes.
+        return _dense_grid_pairs(reach, grid)
+    item_reach = _items_reach(reach, grid.item)
+    out_a, out_b = np.empty(2 * n + 16, dtype=np.int64), np.empty(2 * n + 16, dtype=np.int64)
+    count = 0
+    classes = class_start.size - 1
+    for k in range(classes):
+        # Items in cell order: neighbouring queries touch the same memory.
+        for m in range(class_start[k], class_start[k + 1]):
+            particle = grid.item[m]
+            point = (item_position[m, 0], item_position[m, 1], item_position[m, 2])
+            own_reach = reach[particle]
+            for other in range(k, classes):
+                search = (own_reach + class_reach[other]) * (1.0 + SCAN_SLACK)
+                after = m if other == k else -1
+                before = count
+                count = _scan_class(grid, other, point, search, particle, after, own_reach,
+                                    item_reach, out_a, out_b, count)
+                if count > out_a.size:
+                    out_a = _grown(out_a, before, 2 * count)
+                    out_b = _grown(out_b, before, 2 * count)
+                    count = _scan_class(grid, other, point, search, particle, after, own_reach,
+                                        item_reach, out_a, out_b, before)
+    return sort_pairs(out_a, out_b, count, n)
+
+
+class Partners(NamedTuple):
+    """What a mover query adds to its own reach, in the grid's item order."""
+
+    item_reach: np.ndarray      # (n,) each item's listed reach, m
+    class_reach: np.ndarray     # (classes,) the largest of each class, m
+
+
+@njit(cache=True, nogil=True)
+def grid_query(position, query, query_reach, partners, grid):
+    """Return ``Pairs`` (a, b): each query particle a = query[q] against every item b near it.
+
+    Near: |position[a] - p_b| <= query_reach[q] + partners.item_reach[t]
+    (p_b the grid's position of b, item t). Pairs come in query order,
+    unsorted, a == b included.
+    """
+    out_a = np.empty(16 * query.size + 16, dtype=np.int64)
+    out_b = np.empty(16 * query.size + 16, dtype=np.int64)
+    partner, class_partner = partners.item_reach, partners.class_reach
+    count = 0
+    for q in range(query.size):
+        particle = query[q]
+        point = (position[particle, 0], position[particle, 1], position[particle, 2])
+        own_reach = query_reach[q]
+        for k in range(grid.class_start.size - 1):
+            search = (own_reach + class_partner[k]) * (1.0 + SCAN_SLACK)
+            before = count
+            count = _scan_class(grid, k, point, search, particle, -1, own_reach, partner,
+                                out_a, out_b, count)
+            if count > out_a.size:
+                out_a = _grown(out_a, before, 2 * count)
+                out_b = _grown(out_b, before, 2 * count)
+                count = _scan_class(grid, k, point, search, particle, -1, own_reach, partner,
+                                    out_a, out_b, before)
+    return Pairs(out_a[:count], out_b[:count])
+
+
+def partner_terms(values: np.ndarray, grid: Grid) -> Partners:
+    """Return ``values`` in the grid's item order and the largest of each class."""
+    in_order = np.ascontiguousarray(values, dtype=np.float64)[grid.item]
+    return Partners(in_order, np.maximum.reduceat(in_order, grid.class_start[:-1]))
+
+
+@njit(cache=True, nogil=True)
+def movers(position, built, extra, half_skin):
+    """Return the particles with |position - built| + extra > half_skin (ascending)."""
+    n = position.shape[0]
+    out = np.empty(n, dtype=np.int64)
+    count = 0
+    for p in range(n):
+        dx, dy, dz = position[p, 0] - built[p, 0], position[p, 1] - built[p, 1], \
+            position[p, 2] - built[p, 2]
+        if math.sqrt(dot3(dx, dy, dz, dx, dy, dz)) + extra[p] > half_skin:
+            out[count] = p
+            count += 1
+    return out[:count]
+
+
+@njit(cache=True, nogil=True)
+def merge_pairs(keys, listed, extra, n):
+    """Return the listed ``Pairs`` joined with ``extra``: sorted by (i, j), i != j, no repeats.
+
+    ``keys`` are the sorted i * n + j of the ``listed`` pairs. The listed
+    pairs are copied, not split from their keys: two integer divisions per
+    pair cost more than the whole merge.
+    """
+    a, b = extra.first, extra.second
+    added = np.empty(a.size, dtype=np.int64)
+    count = 0
+    for p in range(a.size):
+        if a[p] != b[p]:
+            added[count] = min(a[p], b[p]) * n + max(a[p], b[p])
+            count += 1
+    added = np.sort(added[:count])
+    out_i = np.empty(keys.size + count, dtype=np.int64)
+    out_j = np.empty(keys.size + count, dtype=np.int64)
+    s = t = m = 0
+    last = -1
+    while s < keys.size or t < count:
+        if t == count or (s < keys.size and keys[s] <= added[t]):
+            value = keys[s]
+            if value != last:
+                out_i[m], out_j[m] = listed.first[s], listed.second[s]
+                m += 1
+            s += 1
+        else:
+            value = added[t]
+            if value != last:
+                out_i[m], out_j[m] = value // n, value % n
+                m += 1
+            t += 1
+        last = value
+    return Pairs(out_i[:m], out_j[:m])
+
+
+def as_points(position: np.ndarray) -> np.ndarray:
+    """Return positions as a contiguous (n, 3) float array (2-D sets get z = 0)."""
+    position = np.ascontiguousarray(position, dtype=np.float64)
+    if position.shape[1] == 3:
+        return position
+    points = np.zeros((position.shape[0], 3))
+    points[:, :position.shape[1]] = position
+    return points
+
+
+def make_grid(position: np.ndarray, reach: np.ndarray, classes: list) -> Grid:
+    """Build the grid of every size class (``classes``: index arrays, smallest reach first)."""
+    order = np.concatenate(classes).astype(np.int64) if len(classes) > 1 else \
+        np.ascontiguousarray(classes[0], dtype=np.int64)
+    class_start = np.zeros(len(classes) + 1, dtype=np.int64)
+    class_start[1:] = np.cumsum([members.size for members in classes])
+    return build_grid(as_points(position), np.ascontiguousarray(reach, dtype=np.float64),
+                      order, class_start)
+
+
+def warm_up() -> None:
+    """Call every kernel once on a tiny problem (compiles or loads from the cache)."""
+    position = np.array([[0.0, 0.0, 0.0], [1.5, 0.0, 0.0], [9.0, 0.0, 0.0]])
+    reach = np.array([1.0, 1.0, 3.0])
+    grid = make_grid(position, reach, [np.array([0, 1]), np.array([2])])
+    grid_pairs(reach, grid)
+    query = np.array([0], dtype=np.int64)
+    near = grid_query(position, query, reach[query], partner_terms(reach, grid), grid)
+    keys = np.array([1], dtype=np.int64)
+    merge_pairs(keys, Pairs(keys // 3, keys % 3), near, 3)
+    movers(position, position, np.zeros(3), 0.5)
+
+
+def kernels() -> list:
+    """Return the compiled kernels of this module (for the cache check)."""
+    return [build_grid, grid_pairs, grid_query, movers, merge_pairs, sort_pairs]

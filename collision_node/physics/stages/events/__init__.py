@@ -1,0 +1,1 @@
+"""The event-driven stage of the exact preset, with its event and resting kernels."""

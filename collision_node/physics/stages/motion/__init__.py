@@ -1,0 +1,1 @@
+"""Stages that move particles: gravity, drift, drag and spin."""

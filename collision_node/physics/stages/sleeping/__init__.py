@@ -1,0 +1,1 @@
+"""Sleeping islands: settled particles made static until something reaches them."""

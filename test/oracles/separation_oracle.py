@@ -1,0 +1,142 @@
+"""The separation stage's projection and lift budget, vectorised: its compiled kernels' reference.
+
+``SeparationOracle`` is the stage with its two compiled parts replaced by
+numpy statements of the same law, in the same floating-point order, so the
+kernels must match it bit for bit (``test/test_separation_kernels.py``).
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from collision_node.physics.model.effects import Walls
+from collision_node.physics.stages.correction.separation import SeparationStage
+from collision_node.physics.stages.detection.narrowphase import line_of_action
+from collision_node.physics.step.pipeline import StepContext
+
+
+def held_by_walls(position: np.ndarray, radius: np.ndarray, push: np.ndarray, walls: Walls,
+                  dimensions: int) -> np.ndarray:
+    """Return the mask of pushed particles that reach a wall the push points into.
+
+    ``position`` is where the push would take them, ``push`` its direction.
+    """
+    p, d, r = position[:, :dimensions], push[:, :dimensions], radius[:, None]
+    into_low = (p <= walls.low[:dimensions] + r) & (d < 0.0)
+    into_high = (p >= walls.high[:dimensions] - r) & (d > 0.0)
+    return np.any(into_low | into_high, axis=1)
+
+
+def clusters(n: int, dynamic: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """Return a cluster label per particle: the components of the contact graph.
+
+    Only contacts between two dynamic particles connect; a static particle
+    (or a wall) does not join the particles resting on it into one cluster.
+    """
+    both = dynamic[i] & dynamic[j]
+    graph = coo_matrix((np.ones(int(both.sum())), (i[both], j[both])), shape=(n, n))
+    return connected_components(graph, directed=False)[1]
+
+
+def separate(position: np.ndarray, inv_mass: np.ndarray, i: np.ndarray, j: np.ndarray,
+             normal: np.ndarray, penetration: np.ndarray, radius: Optional[np.ndarray] = None,
+             walls: Optional[Walls] = None, dimensions: int = 3) -> None:
+    """Push overlapping pairs apart in place along their normals.
+
+    With ``walls`` (and ``radius``), a particle held by a wall does not
+    move and its partner, if it can move, takes the whole push.
+    """
+    w_i, w_j = inv_mass[i], inv_mass[j]
+    if walls is not None:
+        share = (penetration / (w_i + w_j))[:, None] * normal
+        held_i = held_by_walls(position[i] + w_i[:, None] * share, radius[i], normal, walls,
+                               dimensions)
+        held_j = held_by_walls(position[j] - w_j[:, None] * share, radius[j], -normal, walls,
+                               dimensions)
+        w_i, w_j = (np.where(held_i & ~held_j & (w_j > 0.0), 0.0, w_i),
+                    np.where(held_j & ~held_i & (w_i > 0.0), 0.0, w_j))
+    w_sum = w_i + w_j
+    push_i = (penetration * w_i / w_sum)[:, None] * normal
+    push_j = -(penetration * w_j / w_sum)[:, None] * normal
+    n = position.shape[0]
+    moves = np.bincount(i, weights=(w_i > 0), minlength=n) + \
+        np.bincount(j, weights=(w_j > 0), minlength=n)
+    total = np.zeros_like(position)
+    np.add.at(total, i, push_i)
+    np.add.at(total, j, push_j)
+    moved = moves > 0
+    position[moved] += total[moved] / moves[moved, None]
+
+
+class SeparationOracle(SeparationStage):
+    """The separation stage with its projection and lift budget as numpy statements."""
+
+    def _pay_for_lift(self, ctx: StepContext, has_pairs: bool, start: np.ndarray,
+                      added: np.ndarray, budget: np.ndarray) -> np.ndarray:
+        """Take back what the projection's net lift adds to each cluster (numpy)."""
+        state, c = ctx.state, ctx.contacts
+        cluster = clusters(len(state), state.dynamic, c.i, c.j) if has_pairs else \
+            np.arange(len(state))
+        count = int(cluster.max()) + 1 if cluster.size else 0
+        excess = np.bincount(cluster, weights=added, minlength=count) - \
+            np.maximum(np.bincount(cluster, weights=budget, minlength=count), 0.0)
+        removed = np.zeros(added.size)
+        up = (added > 0.0) & (excess[cluster] > 0.0)
+        if not up.any():
+            return removed
+        index = np.flatnonzero(up)
+        raised = np.bincount(cluster[index], weights=added[index], minlength=count)
+        owed = excess[cluster[index]] * added[index] / raised[cluster[index]]
+        mass = 1.0 / state.inv_mass[index]
+        moved = state.position[index] - start[index]
+        way = moved / np.linalg.norm(moved, axis=1)[:, None]
+        # One still moving against its push does not pay.
+        along = np.maximum(np.einsum('ij,ij->i', state.velocity[index], way), 0.0)
+        taken = np.minimum(owed, 0.5 * mass * along * along)
+        slower = np.sqrt(np.maximum(along * along - 2.0 * taken / mass, 0.0))
+        state.velocity[index] += (slower - along)[:, None] * way
+        removed[index] = taken
+        # What the speed cannot pay is not lifted: back along the push by that fraction.
+        unpaid = owed - taken
+        back = unpaid > 0.0
+        state.position[index[back]] -= (unpaid[back] / added[index[back]])[:, None] * \
+            moved[back]
+        return removed
+
+    def _project_passes(self, ctx: StepContext, has_pairs: bool, passes: int,
+                        hold: bool) -> None:
+        """Run the projection passes and wall clamps (numpy)."""
+        s, c = ctx.state, ctx.contacts
+        held_by = self.walls if hold else None
+        for k in range(passes):
+            if has_pairs:
+                if k == 0:
+                    normal, penetration = c.normal, c.penetration
+                    i, j = c.i, c.j
+                else:
+                    normal, distance = line_of_action(s.position[c.i] - s.position[c.j],
+                                                      s.velocity[c.i] - s.velocity[c.j])
+                    penetration = s.radius[c.i] + s.radius[c.j] - distance
+                    overlapping = penetration > 0.0
+                    if not overlapping.any() and self.walls is None:
+                        return
+                    i, j = c.i[overlapping], c.j[overlapping]
+                    normal, penetration = normal[overlapping], penetration[overlapping]
+                separate(s.position, s.inv_mass, i, j, normal, penetration, s.radius,
+                         held_by, ctx.dimensions)
+            self._clamp_inside_walls(ctx)
+
+    def _clamp_inside_walls(self, ctx: StepContext) -> None:
+        """Place particles found past a wall plane back on it."""
+        if self.walls is None:
+            return
+        s = ctx.state
+        dyn = s.dynamic
+        for axis, plane, inward in self.walls.planes(ctx.dimensions):
+            p = s.position[:, axis]
+            inside = dyn & (inward * (p - plane) < s.radius)
+            p[inside] = plane + inward * s.radius[inside]
