@@ -5,10 +5,15 @@ state and statistics as JSON, and on request pictures of the final state
 and of the energy over time (drawn by ``collision_node.pictures``). A bad
 scene or argument exits with code 2 and one line on stderr, before any
 step is taken (every output path included).
-Ctrl-C (SIGINT) or SIGTERM stops the run at a step boundary: the summary
-and the JSON of the state reached (``"interrupted": true``) are still
-written, and the exit code is 130. A world too large for the machine's
-memory (``MemoryError`` while loading or stepping) is one line and exit 2.
+Ctrl-C (SIGINT) or SIGTERM stops the run within a second: at the step
+boundary if the step in flight ends within ``STOP_GRACE_S``, else the step in
+flight is abandoned and the last completed state is reported. The summary
+and the JSON of that state (``"interrupted": true``) are still written, and
+the exit code is 130; a second signal exits at once (130, nothing written).
+The steps run on a worker thread (the compiled kernels release the GIL), so
+the main thread answers signals whatever the step is doing. A world too
+large for the machine's memory (``MemoryError`` while loading or stepping)
+is one line and exit 2.
 ``--profile`` adds the wall time per stage (``World.profile``) to the
 output and the JSON. ``--record PATH`` also writes the run as a rosbag2 bag
 (MCAP) of what the node would publish, stamped with simulated time
@@ -22,10 +27,15 @@ differences from ``exact`` (``collision_node.preset_compare``).
 from __future__ import annotations
 
 import argparse
+import contextlib
+import copy
 import json
 import math
+import os
 import signal
+import stat
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
@@ -43,6 +53,17 @@ from .physics.step.world import NonFiniteStateError, World
 PROGRESS_DELAY_S = 2.0
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
+# After SIGINT/SIGTERM, seconds the step in flight may take to end before it is
+# abandoned and the last completed state is reported (the exit then comes
+# within a second of the signal, writing the result included for mid-size worlds).
+STOP_GRACE_S = 0.5
+# A step taking longer than this makes the worker keep a copy of the state
+# before each next step, so an abandoned step has a completed one to report
+# (the copy costs a few per cent of such a step; faster steps end within the
+# grace anyway).
+SNAPSHOT_AFTER_S = 0.05
+# Seconds between two looks of the main thread at the run (progress bar, signals).
+POLL_S = 0.1
 # More steps than this is a typo or an overflow (1e9 steps of a single
 # particle already take hours), refused before the run: --steps, and the
 # steps --duration (or the scene's duration) makes at the scene's dt.
@@ -124,28 +145,101 @@ def particle_records(world: World) -> list[dict]:
 
 
 def run(world: World, steps: int, show_progress: bool = True,
-        stop: Optional[Callable[[], bool]] = None,
-        after_step: Optional[Callable[[], None]] = None) -> float:
-    """Step ``world`` ``steps`` times; return the wall-clock seconds it took.
+        stop: Optional['_StopRequest'] = None,
+        after_step: Optional[Callable[[], None]] = None) -> tuple[float, World]:
+    """Step ``world`` ``steps`` times; return the wall-clock seconds and the world to report.
 
-    ``stop`` is asked before every step; when it answers true the run ends
-    there (a step is never cut in half). ``after_step`` is called after each.
+    The steps run on a worker thread (the kernels release the GIL), so the
+    calling thread keeps answering signals. ``stop`` is asked before every
+    step; once it answers true the run ends at the next step boundary, or,
+    if the step in flight has not ended ``STOP_GRACE_S`` after the signal,
+    at the last completed step the worker kept: that copy is returned
+    instead of ``world`` (a step is never cut in half in what is reported;
+    the abandoned one goes on in the background until the process ends).
+    ``after_step`` is called after each step, on the worker thread, never
+    once the run was abandoned. An exception of a step is raised here.
     """
     start = time.perf_counter()
-    # The bar is fed in small chunks so it shows up (after its delay) even
-    # on runs of millions of steps.
-    chunk = max(1, min(steps // 200, 64))
+    worker = _Worker(world, steps, stop, after_step)
+    worker.start()
+    reported = world
     with tqdm(total=steps, unit='step', delay=PROGRESS_DELAY_S, file=sys.stderr,
               disable=not show_progress, leave=False) as bar:
-        for done in range(steps):
-            if stop is not None and stop():
+        drawn = start
+        while not worker.done.wait(POLL_S):
+            if stop is not None and stop() and time.monotonic() - stop.since >= STOP_GRACE_S:
+                reported = worker.abandon()
                 break
-            world.step()
-            if after_step is not None:
-                after_step()
-            if (done + 1) % chunk == 0:
-                bar.update(chunk)
-    return time.perf_counter() - start
+            now = time.perf_counter()
+            if world.steps > bar.n:
+                bar.update(world.steps - bar.n)
+            elif show_progress and now - start >= PROGRESS_DELAY_S and now - drawn >= 1.0:
+                bar.refresh()           # drawn (once a second) while one step lasts long
+                drawn = now
+    if worker.error is not None:
+        raise worker.error
+    return time.perf_counter() - start, reported
+
+
+class _Worker(threading.Thread):
+    """Takes the run's steps; keeps a copy of the state before each step that follows a slow one.
+
+    The copy is what an abandoned step reports (``abandon``): the state
+    after the last step that ended. Steps faster than ``SNAPSHOT_AFTER_S``
+    are not copied for (they end within the grace); the initial state is.
+    """
+
+    def __init__(self, world: World, steps: int, stop: Optional[Callable[[], bool]],
+                 after_step: Optional[Callable[[], None]]) -> None:
+        super().__init__(name='simulate steps', daemon=True)
+        self.world, self.steps, self.stop, self.after_step = world, steps, stop, after_step
+        self.done = threading.Event()
+        self.error: Optional[BaseException] = None
+        self._kept: Optional[World] = None
+        self._abandoned = False
+        self._lock = threading.Lock()
+
+    def run(self) -> None:
+        """Step until done or asked to stop, copying the state before slow steps."""
+        world, slow = self.world, True
+        try:
+            for _ in range(self.steps):
+                if self.stop is not None and self.stop():
+                    break
+                if slow:
+                    with self._lock:
+                        if self._abandoned:
+                            break
+                        self._kept = None          # at most one copy alive
+                        self._kept = completed_copy(world)
+                began = time.perf_counter()
+                world.step()
+                slow = time.perf_counter() - began > SNAPSHOT_AFTER_S
+                if self.after_step is not None:
+                    with self._lock:
+                        if self._abandoned:
+                            break
+                        self.after_step()
+        except BaseException as error:  # noqa: B902 - raised again in the caller's thread
+            self.error = error
+        finally:
+            self.done.set()
+
+    def abandon(self) -> World:
+        """Give up the step in flight; return the last completed state kept (or the world)."""
+        with self._lock:
+            self._abandoned = True
+            if self.done.is_set() or self._kept is None:
+                # It ended meanwhile, or never began a step: the world itself is whole.
+                return self.world
+            return self._kept
+
+
+def completed_copy(world: World) -> World:
+    """Return a copy of ``world`` for reporting: its state and counters, not shared."""
+    kept = copy.copy(world)
+    kept.state, kept.stats = world.state.copy(), world.stats.copy()
+    return kept
 
 
 def _calls(*hooks: Optional[Callable[[], None]]) -> Optional[Callable[[], None]]:
@@ -261,12 +355,19 @@ def steps_to_run(args: argparse.Namespace, duration: float, dt: float) -> int:
 
 
 class _StopRequest:
-    """Turns SIGINT and SIGTERM into a flag the run checks between steps."""
+    """Turns SIGINT and SIGTERM into a flag the run checks between steps.
+
+    A second signal ends the process at once (exit 130, one line on
+    stderr), removing a result file being written (``writing``), so
+    nothing half-written is left.
+    """
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
     def __init__(self) -> None:
         self.signal: Optional[int] = None
+        self.since = math.inf                   # monotonic time of the first signal
+        self.writing: Optional[str] = None      # temporary result file being written
         self._previous: dict[int, Any] = {}
 
     def __enter__(self) -> '_StopRequest':
@@ -279,7 +380,15 @@ class _StopRequest:
             signal.signal(number, handler)
 
     def _handle(self, number: int, frame: Any) -> None:
-        self.signal = number
+        if self.signal is None:
+            self.signal, self.since = number, time.monotonic()
+            return
+        if self.writing is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(self.writing)
+        os.write(2, f'simulate: second {signal.Signals(number).name}: exiting at once, '
+                    'nothing written\n'.encode())
+        os._exit(EXIT_INTERRUPTED)
 
     def __call__(self) -> bool:
         return self.signal is not None
@@ -349,13 +458,13 @@ def _main(argv: Optional[Sequence[str]]) -> int:
     if args.energy_plot is not None:
         from .pictures import EnergyRecorder
         recorder = EnergyRecorder(world, steps)
-    # The handlers stay until the outputs are written: a second Ctrl-C must not
-    # lose what the first one kept.
+    # The handlers stay until the outputs are written: a second signal exits at
+    # once, never leaving half a file (write_result).
     with _StopRequest() as stop:
         try:
-            wall_seconds = run(world, steps, stop=stop,
-                               after_step=_calls(recorder, None if recording is None
-                                                 else recording.after_step))
+            wall_seconds, reported = run(world, steps, stop=stop,
+                                         after_step=_calls(recorder, None if recording is None
+                                                           else recording.after_step))
         except NonFiniteStateError as error:
             print(f'simulate: error: {scene.name}: {error}', file=sys.stderr)
             if recording is not None:
@@ -368,37 +477,87 @@ def _main(argv: Optional[Sequence[str]]) -> int:
             if recording is not None:
                 recording.finish()
             return EXIT_BAD_INPUT
-        # The bag is finished before the JSON is made: its last frame is the final state.
-        record_error = None if recording is None else recording.finish()
-        result = build_result(world, start, wall_seconds)
-        if args.profile:
-            result['profile'] = profile_record(world)
-        if stop.signal is not None:
-            result['interrupted'] = True
-            result['steps_requested'] = steps
-        if not args.quiet:
-            if stop.signal is not None:
-                print(f'interrupted by {signal.Signals(stop.signal).name} after {world.steps} '
-                      f'of {steps} steps')
-            print_summary(world, result)
-        if args.profile:
-            print(world.profile().table())
+        abandoned = reported is not world
+        if abandoned:
+            print(f'simulate: {signal.Signals(stop.signal).name}: step {world.steps + 1} did '
+                  f'not end within {STOP_GRACE_S:g} s and was abandoned; reporting the state '
+                  f'after step {reported.steps}', file=sys.stderr)
+        code = _report(reported, start, wall_seconds, steps, args, stop, recording, recorder)
+    if abandoned:
+        # The abandoned step still runs on its thread and cannot be stopped:
+        # end the process here, with everything written and flushed.
         sys.stdout.flush()
-        if args.out is not None:
-            try:
-                with open(args.out, 'w', encoding='utf-8') as handle:
-                    json.dump(result, handle, indent=1)
-            except OSError as error:
-                # Checked before the run; a full disk or /dev/full shows only now.
-                print(f'simulate: error: --out {args.out}: {error.strerror}', file=sys.stderr)
-                return EXIT_BAD_INPUT
-        pictures_written = write_pictures(args, world, recorder)
-        if record_error is not None:
-            # A full disk mid-run: the run went on, the bag stops where the write failed.
-            print(f'simulate: error: --record {args.record}: {record_error}', file=sys.stderr)
-        if not pictures_written or record_error is not None:
+        sys.stderr.flush()
+        os._exit(code)
+    return code
+
+
+def _report(world: World, start: dict, wall_seconds: float, steps: int,
+            args: argparse.Namespace, stop: '_StopRequest', recording: Any,
+            recorder: Any) -> int:
+    """Print the summary of ``world`` and write its outputs; return the exit code."""
+    # The bag is finished before the JSON is made: its last frame is the final state.
+    record_error = None if recording is None else recording.finish()
+    result = build_result(world, start, wall_seconds)
+    if args.profile:
+        result['profile'] = profile_record(world)
+    if stop.signal is not None:
+        result['interrupted'] = True
+        result['steps_requested'] = steps
+    if not args.quiet:
+        if stop.signal is not None:
+            print(f'interrupted by {signal.Signals(stop.signal).name} after {world.steps} '
+                  f'of {steps} steps')
+        print_summary(world, result)
+    if args.profile:
+        print(world.profile().table())
+    sys.stdout.flush()
+    if args.out is not None:
+        try:
+            write_result(args.out, result, stop)
+        except OSError as error:
+            # Checked before the run; a full disk or /dev/full shows only now.
+            print(f'simulate: error: --out {args.out}: {error.strerror}', file=sys.stderr)
             return EXIT_BAD_INPUT
-        return EXIT_INTERRUPTED if stop.signal is not None else 0
+    pictures_written = write_pictures(args, world, recorder)
+    if record_error is not None:
+        # A full disk mid-run: the run went on, the bag stops where the write failed.
+        print(f'simulate: error: --record {args.record}: {record_error}', file=sys.stderr)
+    if not pictures_written or record_error is not None:
+        return EXIT_BAD_INPUT
+    return EXIT_INTERRUPTED if stop.signal is not None else 0
+
+
+def write_result(out: str, result: dict, stop: '_StopRequest') -> None:
+    """Write the JSON ``result`` to ``out``, never leaving half a file behind a second signal.
+
+    A regular file (or a new one) is written beside its target and renamed
+    over it (keeping an existing file's permissions); a device or a
+    symbolic link is written in place (/dev/full fails only there).
+    """
+    path = Path(out)
+    handle = None
+    if not path.is_symlink() and (path.is_file() or not path.exists()):
+        partial = path.with_name(f'.{path.name}.partial-{os.getpid()}')
+        stop.writing = str(partial)
+        try:
+            handle = open(partial, 'x', encoding='utf-8')
+        except OSError:             # a directory we may write the file in but not create in
+            stop.writing = None
+    if handle is None:
+        with open(out, 'w', encoding='utf-8') as handle:
+            json.dump(result, handle, indent=1)
+        return
+    try:
+        with handle:
+            json.dump(result, handle, indent=1)
+        if path.exists():
+            os.chmod(partial, stat.S_IMODE(os.stat(path).st_mode))
+        os.replace(partial, path)
+    finally:
+        stop.writing = None
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(partial)
 
 
 def check_compare(args: argparse.Namespace) -> None:

@@ -246,3 +246,43 @@ class NodeUnderTest:
         finally:
             result = stop(self.process, sig)
         return result
+
+
+class InProcessNode:
+    """A collision_node in this process, with an executor that only the test spins.
+
+    Requests are handed to the subscription callbacks as the executor
+    would; nothing runs unless the test spins, so no timer fires meanwhile.
+    """
+
+    def __init__(self, overrides: list) -> None:
+        """Create the node (parameter ``overrides``) in a context of its own."""
+        from collision_node.ros.node import CollisionNode
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=unique_domain_id())
+        self.node = CollisionNode(context=self.context, parameter_overrides=overrides)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def deliver(self, topic: str, data: bytes) -> None:
+        """Hand a serialised request to the node's ``topic`` subscription callback."""
+        subscription = next(s for s in self.node.subscriptions
+                            if s.topic_name.endswith('/' + topic))
+        subscription.callback(data)
+
+    def spin_until(self, predicate: Callable[[], Any], timeout: float = 30.0) -> Any:
+        """Spin the node until ``predicate()`` is truthy and return it; fail after ``timeout``."""
+        deadline = time.monotonic() + timeout
+        while True:
+            value = predicate()
+            if value:
+                return value
+            assert time.monotonic() < deadline, f'timed out after {timeout} s'
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def close(self) -> None:
+        """Stop the stepping thread, destroy the node and shut the context down."""
+        self.node.stepper.close(1.0)
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.context)

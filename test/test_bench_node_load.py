@@ -80,3 +80,19 @@ def test_without_and_floor_are_checked_before_anything_starts(capsys):
     assert '--without leaves no garbage kind' in capsys.readouterr().err
     assert node_load.main(['--parts', 'ab', '--floor']) == 2
     assert '--floor runs part b only' in capsys.readouterr().err
+
+
+def test_the_stepped_world_is_the_issues_gas():
+    scene = parse_scene_text(node_load.table_gas_text(2000), 'gas')
+    assert len(scene.initial) == 2000 and scene.dimensions == 2
+    assert set(scene.initial.radius.tolist()) == {0.0008}
+    assert scene.effects.walls is not None
+
+
+def test_latency_summary_and_parts_are_checked(capsys):
+    assert node_load.milliseconds([0.001, 0.002, 0.003]) == '2.0 / 2.8 / 3.0 ms'
+    assert node_load.milliseconds([]) == '-'
+    assert node_load.main(['--parts', 'eg']) == 2
+    assert "--parts takes letters of abcdef, got 'eg'" in capsys.readouterr().err
+    assert node_load.main(['--parts', 'e', '--burst', '0']) == 2
+    assert '--burst must be >= 1' in capsys.readouterr().err

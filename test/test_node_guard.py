@@ -16,14 +16,15 @@ import tempfile
 import node_harness
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.parameter import Parameter
 from std_msgs.msg import Empty, String
 from std_srvs.srv import SetBool
 
 from collision_node.physics.model.scene import load_scene
 from collision_node.physics.step.world import World
 from collision_node.ros.commands import CommandInterface, LogBudget
-from msg_adapters.strings import string_text
-from node_harness import executable, NodeUnderTest, ros_env, unique_domain_id
+from msg_adapters.strings import string_bytes, string_text
+from node_harness import executable, InProcessNode, NodeUnderTest, ros_env, unique_domain_id
 
 # Starts ROS processes or tests a ROS front end: `-m "not ros"` leaves it out.
 pytestmark = pytest.mark.ros
@@ -285,13 +286,22 @@ def test_memory_error_in_a_step_request_stops_stepping_with_one_error_line(monke
         if self.steps == 1:
             raise MemoryError('Allocation failed (probably too large).')
         return real_step(self, *args, **kwargs)
-    commands, node, answers = command_interface()
-    monkeypatch.setattr(World, 'step', step)
-    commands.handle('step', '{steps: 5}', commands._step)
-    assert node.world.steps == 1
-    reason = f'out of memory in step 2 of 5 {NO_MEMORY}'
-    assert answers[0]['accepted'] is False
-    assert answers[0]['reason'] == f'step: {reason}; reset to go on'
-    assert node.failed == reason
-    assert node.logger.lines == [('error', f'stopped stepping: {reason}; reset to go on'),
-                                 ('warning', f'rejected step: {reason}; reset to go on')]
+    monkeypatch.setattr(World, 'step', step)       # the stepping thread's steps too
+    harness = InProcessNode([Parameter('paused', Parameter.Type.BOOL, True)])
+    try:
+        node, answers, logger = harness.node, [], _Logger()
+        node.commands.pub_events = type('Publisher', (), {
+            'publish': lambda self, data: answers.append(json.loads(string_text(data)))})()
+        node.get_logger = lambda: logger
+        node.commands.log_budget = LogBudget(logger)
+        harness.deliver('step', string_bytes('{steps: 5}'))
+        harness.spin_until(lambda: answers)
+        assert node.world.steps == 1
+        reason = f'out of memory in step 2 of 5 {NO_MEMORY}'
+        assert answers[0]['accepted'] is False
+        assert answers[0]['reason'] == f'step: {reason}; reset to go on'
+        assert node.failed == reason
+        assert logger.lines == [('error', f'stopped stepping: {reason}; reset to go on'),
+                                ('warning', f'rejected step: {reason}; reset to go on')]
+    finally:
+        harness.close()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from collision_node import load_scene, World
-from collision_node.ros.pacing import Lag, Pacer, RateMeter
+from collision_node.ros.pacing import came_short, Lag, LAG_WINDOW, Pacer, RateMeter
 from collision_node.ros.parameters import DEFAULT_SCENE, PARAMETERS
 
 # Starts ROS processes or tests a ROS front end: `-m "not ros"` leaves it out.
@@ -59,17 +59,69 @@ def test_simulated_time_never_runs_ahead_of_wall_time_through_slow_ticks():
     assert steps * dt == pytest.approx(wall * factor - pacer.dropped, abs=dt + factor * tick)
 
 
-def test_lag_reports_an_episode_once_and_ends_it_after_keeping_up():
-    lag = Lag(caught_up_after=1.0)
-    assert lag.note(0.0, behind=False) is None
-    assert lag.note(0.1, behind=True, dropped=0.5) == 'start'
-    assert lag.note(0.2, behind=True, dropped=0.25) is None
-    assert lag.dropped == 0.75 and lag.behind
-    assert lag.note(0.3, behind=False) is None
-    assert lag.note(0.9, behind=True) is None               # still the same episode
-    assert lag.note(1.0, behind=False) is None
-    assert lag.note(2.0, behind=False) == 'end' and not lag.behind
-    assert lag.note(2.1, behind=True) == 'start'
+def run_ticks(ticks: int, capacity, late: dict = {}, factor: float = 1.0,
+              dt: float = 1.0 / 240.0, period: float = 1.0 / 30.0):
+    """Drive a Pacer and a Lag as the node's ticks do, on a fake wall clock.
+
+    Tick k comes ``period`` (plus ``late[k]``) after the one before and takes
+    at most ``capacity(k)`` steps. Return the episode changes as (change,
+    wall time, tick), the pacer and the lag.
+    """
+    pacer, lag = Pacer(dt=dt, factor=factor, wall=0.0, sim_time=0.0), Lag()
+    steps, wall, changes = 0, 0.0, []
+    for k in range(ticks):
+        wall += period + late.get(k, 0.0)
+        dropped = pacer.drop_backlog(wall, steps * dt, period)
+        due = pacer.steps_due(wall, steps * dt)
+        done = min(due, capacity(k))
+        steps += done
+        change = lag.note(wall, steps * dt, factor, came_short(done, due, dropped, dt), dropped)
+        if change:
+            changes.append((change, wall, k))
+    return changes, pacer, lag
+
+
+def test_a_single_late_tick_of_a_tiny_world_is_no_lag():
+    """Stalls of a loaded machine: each tick's backlog is dropped and counted, no episode."""
+    # A 2-particle world takes every step due; one tick comes 0.6 s late, then
+    # (3 s apart) two more come 1.5 s and 0.2 s late.
+    changes, pacer, lag = run_ticks(600, capacity=lambda k: 10 ** 6,
+                                    late={100: 0.6, 200: 1.5, 300: 0.2})
+    assert changes == [] and not lag.behind
+    assert pacer.dropped > 0.6 + 1.5 + 0.2 - 3 * (1.0 / 240.0 + 1.0 / 30.0) - 1e-9
+
+
+def test_jitter_that_keeps_the_rate_is_no_lag():
+    # Every fifth tick comes two steps late: many short ticks, but 90 % of the rate kept.
+    changes, pacer, lag = run_ticks(600, capacity=lambda k: 10 ** 6,
+                                    late={k: 2.0 / 240.0 for k in range(0, 600, 5)})
+    assert changes == [] and pacer.dropped > 0.0
+
+
+def test_a_world_that_truly_falls_behind_is_reported_once_then_caught_up():
+    # Ticks of 1/32 s due 8 steps of 1/256 s (binary fractions: the fake clock adds
+    # up exactly); the world manages 4 (half the rate) for 180 ticks, then all.
+    period = 1.0 / 32.0
+    changes, pacer, lag = run_ticks(360, capacity=lambda k: 4 if k < 180 else 10 ** 6,
+                                    dt=1.0 / 256.0, period=period)
+    assert [c[0] for c in changes] == ['start', 'end']
+    (_, started, _), (_, ended, end_tick) = changes
+    # Judged once the ticks span the window (from the first tick, at `period`).
+    assert started - period == LAG_WINDOW
+    # Tick 180 still drops the backlog the slow ticks left; tick 181 is the first
+    # to keep up, and the episode ends CAUGHT_UP_AFTER (1 s, 32 ticks) later.
+    assert end_tick == 181 + 32 and ended == (end_tick + 1) * period
+    assert lag.dropped > 0.0 and not lag.behind
+
+
+def test_lag_window_is_forgotten_on_clear():
+    lag = Lag(window=1.0, shortfall=0.2, ticks=3)
+    for k in range(10):                          # 0.9 s of ticks at half the rate
+        assert lag.note(0.1 * k, 0.05 * k, 1.0, short=True) is None
+    lag.clear()
+    for k in range(4):                           # a new window: 0.75 s, not judged yet
+        assert lag.note(1.0 + 0.25 * k, 0.45 + 0.125 * k, 1.0, short=True) is None
+    assert lag.note(2.0, 0.95, 1.0, short=True) == 'start'  # half the rate over 1 s
 
 
 def test_rate_meter_measures_over_its_window():

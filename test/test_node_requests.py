@@ -23,6 +23,7 @@ from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
 
 from collision_node.physics.model.guard import MAX_TEXT_BYTES
+from collision_node.ros.qos import SERVICE_QOS
 from msg_adapters import state_from_point_cloud
 from msg_adapters.strings import string_bytes
 from node_harness import executable, NodeUnderTest, ros_env, unique_domain_id
@@ -240,6 +241,30 @@ def test_step_while_paused_then_pause_service_resumes(fresh):
     finally:
         assert fresh.probe.call(fresh.pause_client, SetBool.Request(data=True)).success
     assert fresh.next_status(lambda s: s['paused'])['paused'] is True
+
+
+def test_500_concurrent_pause_calls_from_one_client_are_all_answered(fresh):
+    """The node's services keep every request until taken (the default depth was 10)."""
+    # The client's own queue must be deep too, or it drops answers itself (qos.py).
+    client = fresh.probe.node.create_client(SetBool, 'pause', qos_profile=SERVICE_QOS)
+    assert client.wait_for_service(timeout_sec=15)
+    start = len(fresh.answers)
+    futures = [client.call_async(SetBool.Request(data=True)) for _ in range(500)]
+    try:
+        fresh.probe.wait_for(lambda: all(f.done() for f in futures), timeout=120)
+    finally:
+        answered = sum(f.done() for f in futures)
+        for future in futures:
+            if not future.done():
+                client.remove_pending_request(future)
+    assert answered == 500
+    assert all(f.result().success and f.result().message.startswith('paused at time 0 s')
+               for f in futures)
+    # Each call is answered on events too.
+    fresh.probe.wait_for(lambda: len(fresh.answers) >= start + 500)
+    answers = [json.loads(m.data) for m in fresh.answers[start:]]
+    assert [a['request'] for a in answers] == ['pause'] * 500
+    assert all(a['accepted'] and a['paused'] for a in answers)
 
 
 def test_integer_values_for_double_parameters_are_accepted(node):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import select
 import signal
 import subprocess
@@ -14,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from collision_node import simulate
+from collision_node.physics.model.scene import load_scene
 from collision_node.simulate import main
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -226,3 +229,95 @@ def test_signal_stops_the_run_and_keeps_the_work(tmp_path, sig):
     # The state reached is a real one: the pair still carries its momentum and energy.
     assert result['stats']['kinetic_energy'][1] == pytest.approx(
         result['stats']['kinetic_energy'][0], rel=1e-9)
+
+
+# One step of this gas takes about 17 s on the 2-core test machine (5,000 particles,
+# each step split into 1000 substeps of the accurate preset): a signal sent once the
+# progress bar shows (2 s into the run) lands inside the first step.
+HUGE_STEP_SCENE = '''name: huge_step
+dimensions: 2
+dt: 0.01
+duration: 0.03
+effects:
+  walls: {min: [-1.0, -1.0], max: [1.0, 1.0]}
+accuracy: {preset: accurate, substeps: 1000}
+generate:
+  - {kind: gas, count: 5000, radius: 0.004, mass: 1.0, speed: 1.0, seed: 1,
+     region: {min: [-1.0, -1.0], max: [1.0, 1.0]}}
+'''
+
+
+def start_huge_step(tmp_path: Path) -> tuple[subprocess.Popen, Path, Path]:
+    """Start the runner on HUGE_STEP_SCENE; return it once its first step is under way."""
+    scene, out = tmp_path / 'huge_step.yaml', tmp_path / 'huge_step.json'
+    scene.write_text(HUGE_STEP_SCENE)
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get('PYTHONPATH', ''))
+    process = subprocess.Popen(
+        [sys.executable, '-m', 'collision_node.simulate', str(scene), '--out', str(out)],
+        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        # The bar is drawn 2 s into the run even while no step has ended.
+        wait_for_output(process, b'0/3')
+    except BaseException:
+        process.kill()
+        process.wait()
+        raise
+    return process, scene, out
+
+
+def stderr_lines(stderr: bytes) -> list[str]:
+    """Return stderr's lines without the progress bar's redraws."""
+    return [line for line in re.split(r'[\r\n]', stderr.decode())
+            if line.strip() and 'step/s' not in line]
+
+
+def test_sigterm_inside_a_huge_step_ends_the_run_within_a_second(tmp_path):
+    """The step in flight is abandoned; the last completed state (step 0) is reported."""
+    process, scene, out = start_huge_step(tmp_path)
+    try:
+        sent = time.monotonic()
+        process.send_signal(signal.SIGTERM)
+        stdout, stderr = process.communicate(timeout=60)
+        took = time.monotonic() - sent
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    assert process.returncode == 130, stderr
+    # The runner waits STOP_GRACE_S (0.5 s) for the step to end, then writes the
+    # summary and 5,000 particles of JSON (0.3 s on a loaded machine): within a
+    # second, plus the process's exit. 1 s more leaves room for a loaded machine,
+    # not for waiting on the step (17 s).
+    assert took < 2.0, f'{took:.2f} s from SIGTERM to exit'
+    assert stderr_lines(stderr) == [
+        f'simulate: SIGTERM: step 1 did not end within {simulate.STOP_GRACE_S:g} s and was '
+        'abandoned; reporting the state after step 0']
+    assert stdout.decode().splitlines()[0] == 'interrupted by SIGTERM after 0 of 3 steps'
+    result = json.loads(out.read_text())
+    assert result['interrupted'] is True and result['steps_requested'] == 3
+    assert result['steps'] == 0 and result['time'] == 0.0
+    # Step 0 is the scene's initial state, every particle exactly as generated.
+    initial = load_scene(str(scene)).initial
+    np.testing.assert_array_equal([p['position'] for p in result['particles']],
+                                  initial.position)
+    np.testing.assert_array_equal([p['velocity'] for p in result['particles']],
+                                  initial.velocity)
+    assert {p.name for p in tmp_path.iterdir()} == {'huge_step.yaml', 'huge_step.json'}
+
+
+def test_a_second_signal_exits_at_once_writing_nothing(tmp_path):
+    process, scene, out = start_huge_step(tmp_path)
+    try:
+        process.send_signal(signal.SIGTERM)
+        process.send_signal(signal.SIGINT)
+        stdout, stderr = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    assert process.returncode == 130, stderr
+    lines = stderr_lines(stderr)
+    assert len(lines) == 1 and re.fullmatch(
+        r'simulate: second SIG(INT|TERM): exiting at once, nothing written', lines[0]), lines
+    assert stdout == b''
+    assert {p.name for p in tmp_path.iterdir()} == {'huge_step.yaml'}

@@ -3,11 +3,12 @@
     python -m collision_node.bench node-load [--spawns 10000] [--garbage 10000]
         [--without TEXT] [--floor]
         [--particles 10000] [--latency-samples 50] [--rtf-particles 1000]
-        [--rtf-seconds 5] [--stall-particles 20000] [--timeout 60]
+        [--rtf-seconds 5] [--stall-particles 20000] [--burst 500]
+        [--step-particles 100000] [--pause-samples 20] [--timeout 60]
 
 The node runs as its own process (``python -m collision_node.ros.node``, so
 this checkout's code) on a ROS domain of its own; this process is one
-client. Four parts, printed as one Markdown table:
+client. Six parts, printed as one Markdown table:
 
 (a) ``--spawns`` valid single-particle spawns (non-overlapping, on a lattice
     in a walled box), published back to back by one publisher with the
@@ -28,6 +29,14 @@ client. Four parts, printed as one Markdown table:
     the time the stall cost.
 (d) spawn-to-answer latency (one request at a time) with a running world
     of ``--particles`` gas particles: median, 90th percentile, maximum.
+(e) ``--burst`` concurrent ``/pause`` calls from one client, once with a
+    KEEP_ALL client (the node's service QoS) and once with the services
+    default (keep last 10): answered / sent, latency from the burst's start.
+(f) ``/pause`` round trip while a 2-D gas of ``--step-particles`` (the
+    issue's: radius 0.8 mm on the default table) takes a 10,000-step
+    request: median / p90 / max of ``--pause-samples`` calls, the seconds
+    per step, where the time limit ends the request, and a reset's reply
+    (after RESET_REPLY_WAIT; the reset follows the step in flight).
 
 Every number is what was measured; a node that dies, hangs or drops
 answers is reported as such, never retried into a good figure.
@@ -54,15 +63,17 @@ from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, qos_profile_services_default,
+                       ReliabilityPolicy)
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Empty, String
+from std_srvs.srv import SetBool, Trigger
 
 from msg_adapters import seconds_from_stamp
 from msg_adapters.cdr import CdrWriter
 from msg_adapters.strings import string_bytes
 
-from ..ros.qos import COMMAND_QOS, fastdds_profiles, STATE_QOS, STATUS_QOS
+from ..ros.qos import COMMAND_QOS, fastdds_profiles, SERVICE_QOS, STATE_QOS, STATUS_QOS
 from .node_ticks import spin_until_stopped
 
 NODE_NAME = 'collision_node'
@@ -71,7 +82,9 @@ LATTICE = 0.02                # m between flood spawns (4 radii: none overlap)
 GAS_RADIUS = 0.01             # m
 GAS_FRACTION = 0.05           # volume fraction of the latency world's gas
 GAS_SPEED = 0.1               # m/s
-DT = 1.0 / 60.0               # s, every bench scene
+DT = 1.0 / 60.0               # s, every bench scene but part (f)'s
+STEP_REQUEST = 10_000         # (f) steps asked for while the pause calls are timed
+QUIET_SECONDS = 5.0           # (e) no answer for this long: the rest are lost
 SETTLE_SECONDS = 2.0          # s after the garbage flood's last answer, memory read again
 # Answers are taken with KEEP_ALL: the bench must not lose what the node sent.
 ANSWER_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
@@ -109,6 +122,14 @@ def gas_scene_text(count: int) -> str:
             f'generate:\n  - {{kind: gas, count: {count}, radius: {GAS_RADIUS}, mass: 1.0, '
             f'speed: {GAS_SPEED}, seed: 3, region: {{min: [0, 0, 0], '
             f'max: [{side!r}, {side!r}, {0.8 * side!r}]}}}}\n')
+
+
+def table_gas_text(count: int) -> str:
+    """Return the issue's slow world: ``count`` particles of radius 0.8 mm on the default table."""
+    return ('name: table_gas\ndimensions: 2\ndt: 0.004166666666666667\n'
+            'effects:\n  walls: {min: [-1.27, -0.635], max: [1.27, 0.635]}\n'
+            f'generate:\n  - {{kind: gas, count: {count}, radius: 0.0008, mass: 1.0, '
+            'speed: 1.0, seed: 5, region: {min: [-1.2, -0.6], max: [1.2, 0.6]}}\n')
 
 
 def spawn_text(position: np.ndarray, request_id: Optional[str]) -> str:
@@ -319,15 +340,16 @@ class Client:
 
 
 def start_node(scene_text: str, workdir: Path, name: str, domain_id: int,
-               timeout: float, floor: bool = False) -> tuple[NodeProcess, Client]:
+               timeout: float, floor: bool = False,
+               parameters: Optional[dict[str, str]] = None) -> tuple[NodeProcess, Client]:
     """Write the scene, start the node and a client; wait for its status and subscriptions.
 
     ``floor`` starts :func:`responder` in the node's place.
     """
     path = workdir / f'{name}.yaml'
     path.write_text(scene_text)
-    node = NodeProcess(path, domain_id, {}, ('-m', 'collision_node.bench.node_load',
-                                             RESPONDER) if floor else
+    node = NodeProcess(path, domain_id, parameters or {},
+                       ('-m', 'collision_node.bench.node_load', RESPONDER) if floor else
                        ('-m', 'collision_node.ros.node'))
     client = Client(domain_id)
     ready = client.wait(lambda: client.statuses and client.spawn.get_subscription_count() > 0
@@ -585,6 +607,113 @@ def spawn_latency(client: Client, node: NodeProcess, samples: int, particles: in
     return rows
 
 
+def milliseconds(seconds: list[float]) -> str:
+    """Return 'median / p90 / max ms' of some durations ('-' for none)."""
+    if not seconds:
+        return '-'
+    ms = 1e3 * np.array(seconds)
+    return f'{np.median(ms):.1f} / {np.percentile(ms, 90):.1f} / {ms.max():.1f} ms'
+
+
+def pause_burst(client: Client, node: NodeProcess, count: int, timeout: float) -> list[Row]:
+    """Part (e): ``count`` concurrent /pause calls from one client; answered and latency."""
+    rows: list[Row] = []
+    for label, qos in (('KEEP_ALL client', SERVICE_QOS),
+                       ('services-default client (keep last 10)', qos_profile_services_default)):
+        pause = client.node.create_client(SetBool, 'pause', qos_profile=qos)
+        if not pause.wait_for_service(timeout_sec=timeout):
+            rows.append(('e', label, 'no /pause service'))
+            continue
+        t0 = time.monotonic()
+        futures = [pause.call_async(SetBool.Request(data=True)) for _ in range(count)]
+        answered: dict[int, float] = {}
+        quiet_since = time.monotonic()
+        while len(answered) < count and node.alive() and \
+                time.monotonic() - quiet_since < QUIET_SECONDS:
+            client.executor.spin_once(timeout_sec=0.02)
+            now = time.monotonic()
+            for k, future in enumerate(futures):
+                if k not in answered and future.done():
+                    answered[k] = now
+                    quiet_since = now
+        for future in futures:
+            if not future.done():
+                pause.remove_pending_request(future)
+        client.node.destroy_client(pause)
+        latency = [t - t0 for t in answered.values()]
+        rows.append(('e', f'{count} concurrent /pause calls, {label}: answered / sent',
+                     f'{len(answered)} / {count}'))
+        rows.append(('e', f'{label}: latency from the burst, median / p90 / max',
+                     milliseconds(latency)))
+    if not node.alive():
+        rows.append(('e', 'node', f'DIED (exit {node.process.returncode}): {node.tail()}'))
+    return rows
+
+
+def pause_while_stepping(workdir: Path, domain_id: int, particles: int, samples: int,
+                         timeout: float) -> list[Row]:
+    """Part (f): /pause round trips while a ``particles`` gas takes a long step request."""
+    node, client = start_node(table_gas_text(particles), workdir, 'table_gas', domain_id,
+                              timeout, parameters={'paused': 'true',
+                                                   'max_particles': str(particles)})
+    rows: list[Row] = []
+    try:
+        step = client.node.create_publisher(String, 'step', COMMAND_QOS)
+        pause = client.node.create_client(SetBool, 'pause', qos_profile=SERVICE_QOS)
+        reset = client.node.create_client(Trigger, 'reset', qos_profile=SERVICE_QOS)
+        client.wait(lambda: step.get_subscription_count() > 0, timeout, node)
+
+        def call(service: Any, request: Any) -> Optional[float]:
+            if not service.wait_for_service(timeout_sec=timeout):
+                return None
+            t0 = time.monotonic()
+            future = service.call_async(request)
+            client.executor.spin_until_future_complete(future, timeout_sec=timeout)
+            return time.monotonic() - t0 if future.done() else None
+
+        def stepped(after: int) -> bool:
+            return client.wait(lambda: client.statuses[-1].get('steps', 0) > after, timeout,
+                               node)
+
+        start = len(client.events)
+        t0 = time.monotonic()
+        step.publish(String(data=json.dumps({'steps': STEP_REQUEST, 'request_id': 'long'})))
+        stepped(0)
+        trips = [call(pause, SetBool.Request(data=True)) for _ in range(samples)]
+        lost = sum(t is None for t in trips)
+        rows.append(('f', 'world', f'{particles}-particle 2-D gas (radius 0.8 mm), '
+                     f'{STEP_REQUEST}-step request under way'))
+        rows.append(('f', f'/pause round trip while it steps, median / p90 / max '
+                          f'({samples} calls{f", {lost} unanswered" if lost else ""})',
+                     milliseconds([t for t in trips if t is not None])))
+
+        def step_answer() -> Optional[dict]:
+            for _, event in client.events[start:]:
+                if event.get('request') == 'step' and event.get('request_id') == 'long':
+                    return event
+            return None
+        client.wait(step_answer, timeout + 60.0, node)
+        ended = step_answer()
+        if ended:
+            took = time.monotonic() - t0
+            rows.append(('f', 'the step request ended', f'after {took:.1f} s, {ended["steps"]} '
+                              f'steps ({took / max(ended["steps"], 1):.2f} s per step), '
+                              f'{ended.get("stopped", "complete")}'))
+        else:
+            rows.append(('f', 'the step request ended', 'no answer'))
+        steps_before = client.statuses[-1].get('steps', 0)
+        step.publish(String(data=json.dumps({'steps': STEP_REQUEST, 'request_id': 'again'})))
+        stepped(steps_before)
+        waited = call(reset, Trigger.Request())
+        rows.append(('f', '/reset reply while it steps (the reset follows the step)',
+                     '-' if waited is None else f'{1e3 * waited:.0f} ms'))
+    finally:
+        client.close()
+        code = node.stop()
+    rows.append(('-', 'table gas node exit code', str(code)))
+    return rows
+
+
 # -- the floor: a stand-in that only takes and answers ------------------------
 
 RESPONDER = '--responder'
@@ -650,10 +779,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='(d) gas particles of the running world (default 10000)')
     parser.add_argument('--latency-samples', type=int, default=50, metavar='K',
                         help='(d) spawns timed one at a time (default 50)')
+    parser.add_argument('--burst', type=int, default=500, metavar='N',
+                        help='(e) concurrent /pause calls from one client (default 500)')
+    parser.add_argument('--step-particles', type=int, default=100_000, metavar='N',
+                        help='(f) particles of the world stepped while /pause is timed '
+                             '(default 100000)')
+    parser.add_argument('--pause-samples', type=int, default=20, metavar='K',
+                        help='(f) /pause calls timed (default 20)')
     parser.add_argument('--timeout', type=float, default=60.0, metavar='S',
                         help='give up waiting for the node after S quiet seconds (default 60)')
-    parser.add_argument('--parts', default='abcd',
-                        help='which parts to run, e.g. "ad" (default abcd)')
+    parser.add_argument('--parts', default='abcdef',
+                        help='which parts to run, e.g. "ad" (default abcdef)')
     parser.add_argument('--domain-id', type=int, default=None,
                         help='ROS domain of the node and the client (default: from the pid)')
 
@@ -662,7 +798,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the parts asked for and print the table; 0 unless the node would not start."""
     parts = set(args.parts)
     for name in ('spawns', 'garbage', 'rtf_particles', 'stall_particles', 'particles',
-                 'latency_samples'):
+                 'latency_samples', 'burst', 'step_particles', 'pause_samples'):
         if getattr(args, name) < 1:
             print(f'node-load: --{name.replace("_", "-")} must be >= 1', file=sys.stderr)
             return 2
@@ -674,8 +810,9 @@ def run(args: argparse.Namespace) -> int:
     if args.floor and parts != {'b'}:
         print('node-load: --floor runs part b only (--parts b)', file=sys.stderr)
         return 2
-    if not parts <= set('abcd') or not parts:
-        print(f'node-load: --parts takes letters of abcd, got {args.parts!r}', file=sys.stderr)
+    if not parts <= set('abcdef') or not parts:
+        print(f'node-load: --parts takes letters of abcdef, got {args.parts!r}',
+              file=sys.stderr)
         return 2
     domain_id = args.domain_id if args.domain_id is not None else 1 + os.getpid() % 100
     load = os.getloadavg()
@@ -683,7 +820,7 @@ def run(args: argparse.Namespace) -> int:
           f'({os.cpu_count()} CPUs), ROS domain {domain_id}')
     rows: list[Row] = []
     with tempfile.TemporaryDirectory(prefix='node_load_') as workdir:
-        if parts & set('abc'):
+        if parts & set('abce'):
             text = box_scene_text(max(args.spawns + 1, args.rtf_particles))
             node, client = start_node(text, Path(workdir), 'box', domain_id, args.timeout,
                                       args.floor)
@@ -700,6 +837,8 @@ def run(args: argparse.Namespace) -> int:
                     rows += rtf_around_stall(client, node, args.rtf_particles,
                                              args.rtf_seconds, args.stall_particles,
                                              box_side(text), args.timeout)
+                if 'e' in parts and node.alive():
+                    rows += pause_burst(client, node, args.burst, args.timeout)
             finally:
                 client.close()
                 code = node.stop()
@@ -714,6 +853,9 @@ def run(args: argparse.Namespace) -> int:
                 client.close()
                 code = node.stop()
             rows.append(('-', 'gas node exit code', str(code)))
+        if 'f' in parts:
+            rows += pause_while_stepping(Path(workdir), domain_id, args.step_particles,
+                                         args.pause_samples, args.timeout)
     print('| part | measure | value |')
     print('|---|---|---|')
     for part, measure, value in rows:

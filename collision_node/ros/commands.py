@@ -15,6 +15,12 @@ gets exactly one answer on ``events``::
 (null without one); ``ids`` are inclusive ``[first, last]`` ranges. The
 checks themselves live in :mod:`collision_node.physics.model.world_commands`; this
 module only routes messages and formats answers.
+
+While a slice of steps runs (node.py, stepper.py) a request waits for
+its end, at most the step in flight; a ``step`` request is itself taken in
+slices, bounded by ``STEP_REQUEST_SECONDS`` of wall time as well as by its
+count, and answered when it ends. The status goes out after every
+accepted request (once per batch taken).
 """
 
 from __future__ import annotations
@@ -22,10 +28,12 @@ from __future__ import annotations
 import ctypes
 import json
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Optional
 
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.clock import Clock, ClockType
 from rclpy.parameter import Parameter
+from rclpy.task import Future
 from std_msgs.msg import Empty, String
 from std_srvs.srv import SetBool, Trigger
 
@@ -36,8 +44,7 @@ from ..physics.model.world_commands import (delete_request, id_ranges, impulse_r
                                             step_count, teleport_request)
 from ..physics.model.guard import MAX_TEXT_BYTES
 from ..physics.model.validation import SceneError
-from ..physics.step.world import NonFiniteStateError
-from .qos import COMMAND_QOS, EVENTS_QOS
+from .qos import COMMAND_QOS, EVENTS_QOS, SERVICE_QOS
 
 MAX_REASON = 400             # characters of a refusal reason in an answer
 # Queued requests one callback may take after its own (see _subscribe).
@@ -50,6 +57,19 @@ TRIM_PERIOD = 1.0            # s between checks for a trim the drain did not mak
 _MALLOC_TRIM = getattr(ctypes.CDLL(None), 'malloc_trim', None)     # glibc only
 # Refusals logged a second at most (each is answered on events anyway).
 LOGGED_PER_SECOND = 20
+# Wall seconds one step request may take (besides its count, 1..10,000 steps):
+# it then ends, answered with the steps it took and "stopped": "time limit".
+STEP_REQUEST_SECONDS = 10.0
+# Requests held while a step is in flight (taken at its end). Beyond either
+# bound the node waits for that step before it takes more, so a flood stays
+# in the middleware's queues (reliable flow control) instead of in memory.
+PENDING_REQUESTS = 1000
+PENDING_BYTES = 16 << 20
+# What a handler returns for a request it answers later (a step request).
+LATER = None
+# Seconds a reset service call waits for the step in flight before it is
+# answered anyway (the reset then follows that step).
+RESET_REPLY_WAIT = 0.05
 
 
 def out_of_memory(error: MemoryError, doing: str) -> str:
@@ -81,6 +101,30 @@ class LogBudget:
         return False
 
 
+class HoldableGroup(MutuallyExclusiveCallbackGroup):
+    """A callback group whose messages stay queued in the middleware while ``held``.
+
+    The node holds its command topics while a slice of steps runs: a
+    request could not touch the world before the slice ends anyway, and
+    left in the (KEEP_ALL, reliable) reader it costs neither memory nor the
+    stepping thread's share of the interpreter; the slice's end releases it
+    and the batch is taken as usual.
+    """
+
+    def __init__(self) -> None:
+        """Start released."""
+        super().__init__()
+        self.held = False
+
+    def can_execute(self, entity: Any) -> bool:
+        """Tell whether ``entity``'s callback may run: never while held."""
+        return not self.held and super().can_execute(entity)
+
+    def beginning_execution(self, entity: Any) -> bool:
+        """Begin ``entity``'s callback unless held (its message then stays queued)."""
+        return not self.held and super().beginning_execution(entity)
+
+
 class CommandInterface:
     """Subscriptions and services of the node's commands, and its answers on ``events``."""
 
@@ -96,17 +140,23 @@ class CommandInterface:
         self._logged: dict[str, float] = {}     # monotonic time of each kind's last log line
         self._taken = 0                         # request bytes taken since the last trim
         self.pub_events = node.create_publisher(String, 'events', EVENTS_QOS)
+        # The command topics, held while a slice of steps runs (node.py).
+        self.topics = HoldableGroup()
         handlers: dict[str, Callable[[Any], dict]] = {
             'spawn': self._spawn, 'delete': self._delete, 'teleport': self._teleport,
             'impulse': self._impulse, 'step': self._step}
         for name, handler in handlers.items():
             self._subscribe(name, handler)
-        node.create_subscription(Empty, 'reset', self._on_reset_topic, COMMAND_QOS)
-        node.create_service(Trigger, 'reset', self._on_reset_service)
-        node.create_service(SetBool, 'pause', self._on_pause_service)
+        node.create_subscription(Empty, 'reset', self._on_reset_topic, COMMAND_QOS,
+                                 callback_group=self.topics)
+        # Its own callback group: a reset call waiting for the step in flight must
+        # not hold back the node's other callbacks (the slice's end among them).
+        node.create_service(Trigger, 'reset', self._on_reset_service, qos_profile=SERVICE_QOS,
+                            callback_group=ReentrantCallbackGroup())
+        node.create_service(SetBool, 'pause', self._on_pause_service, qos_profile=SERVICE_QOS)
         # A burst can end without its last drain finding the queue empty.
-        node.create_timer(TRIM_PERIOD, lambda: self._trim(1 << 20), clock=Clock(
-            clock_type=ClockType.STEADY_TIME))
+        self.steady = Clock(clock_type=ClockType.STEADY_TIME)
+        node.create_timer(TRIM_PERIOD, lambda: self._trim(1 << 20), clock=self.steady)
 
     def _subscribe(self, name: str, handler: Callable[[Any], dict]) -> None:
         """Subscribe to one command topic raw; each callback also drains what is queued.
@@ -118,7 +168,7 @@ class CommandInterface:
         subscription = None
 
         def on_message(data: bytes) -> None:
-            self.handle_bytes(name, data, handler)
+            self.take(name, data, handler)
             # The executor hands over one message per wait, which costs more than
             # most requests do; take what is already queued here, within a bound so
             # the tick (stepping and publishing) still runs on time.
@@ -132,10 +182,31 @@ class CommandInterface:
                 if taken is None:
                     self._trim()
                     break
-                self.handle_bytes(name, taken[0], handler)
+                self.take(name, taken[0], handler)
+            self.node.flush_status()
 
         subscription = self.node.create_subscription(String, name, on_message, COMMAND_QOS,
-                                                     raw=True)
+                                                     raw=True, callback_group=self.topics)
+
+    def take(self, request: str, data: bytes, handler: Callable[[Any], dict]) -> None:
+        """Handle a request now, or in turn once the slice in flight ends (see PENDING_*).
+
+        The slice is not cut short for it: it ends within STEP_BUDGET of a
+        tick period or after its step in flight, whichever is later, and what
+        came meanwhile is then taken in one batch. Beyond PENDING_* the node
+        waits for the slice here, so a flood stays in the middleware's queue.
+        """
+        node = self.node
+        if not node.stepper.busy and not node.pending:
+            self.handle_bytes(request, data, handler)
+            return
+        node.at_boundary(lambda: self.handle_bytes(request, data, handler), interrupt=False,
+                         size=len(data))
+        while len(node.pending) >= PENDING_REQUESTS or node.pending_bytes >= PENDING_BYTES:
+            if node.stepper.busy:
+                node.stepper.wait()
+            else:
+                node.run_pending()
 
     # -- answers ------------------------------------------------------------
 
@@ -189,7 +260,9 @@ class CommandInterface:
         except Exception as error:  # noqa: B902 - a bad request must never stop the node
             reason = f'{request}: {type(error).__name__}: {error}'
         else:
-            self.answer(request, request_id, True, **fields)
+            if fields is not LATER:
+                self.answer(request, request_id, True, **fields)
+                self.node.status_changed()
             return
         self.refuse(request, request_id, reason)
 
@@ -251,8 +324,8 @@ class CommandInterface:
         return {'ids': [[pid, pid]], 'position': world.state.position[row].tolist(),
                 'velocity': world.state.velocity[row].tolist()}
 
-    def _step(self, data: Any) -> dict:
-        """Take N steps while paused."""
+    def _step(self, data: Any) -> Optional[dict]:
+        """Begin N steps while paused; they run in slices and are answered at their end."""
         count = step_count(data)
         node = self.node
         if not node.paused:
@@ -262,31 +335,53 @@ class CommandInterface:
             raise SceneError(f'step: stepping stopped ({node.failed}); reset to go on')
         # A subscriber that appeared since the last tick sees these steps' impacts too.
         node.reports.follow_listeners(node.world)
-        for done in range(count):
-            try:
-                node.world.step(1)
-            except NonFiniteStateError as error:
-                node.failed = str(error)
-                node.get_logger().error(f'stopped stepping: {error}; reset to go on')
-                raise SceneError(f'step: stopped after {done + 1} of {count} steps: '
-                                 f'{error}') from None
-            except MemoryError as error:
-                # The step may be half done: stop stepping, as on a non-finite state.
-                node.failed = out_of_memory(error, f'in step {done + 1} of {count}')
-                node.get_logger().error(f'stopped stepping: {node.failed}; reset to go on')
-                raise SceneError(f'step: {node.failed}; reset to go on') from None
-        return {'steps': count, 'time': node.world.time}
+        node.begin_step_request(request_id_of(data, 'step'), count, STEP_REQUEST_SECONDS)
+        return LATER
+
+    def answer_step(self, request_id: Any, done: int, count: int,
+                    stopped: Optional[str]) -> None:
+        """Answer a step request that ended: all ``count`` steps, or ``done`` and why not."""
+        fields: dict[str, Any] = {'steps': done, 'time': self.node.world.time}
+        if stopped is not None:
+            limit = f' of {STEP_REQUEST_SECONDS:g} s' if stopped == 'time limit' else ''
+            fields.update(steps_requested=count, stopped=stopped + limit)
+        self.answer('step', request_id, True, **fields)
+        self.node.status_changed()
 
     # -- reset and pause --------------------------------------------------------
 
     def _on_reset_topic(self, msg: Empty) -> None:
-        """Reset on a message on the ``reset`` topic."""
-        self._reset()
+        """Reset on a message on the ``reset`` topic (at the end of the step in flight)."""
+        self.node.at_boundary(self._reset)
 
-    def _on_reset_service(self, request: Trigger.Request,
-                          response: Trigger.Response) -> Trigger.Response:
-        """Reset on a ``reset`` service call and reply."""
-        response.message = self._reset()
+    async def _on_reset_service(self, request: Trigger.Request,
+                                response: Trigger.Response) -> Trigger.Response:
+        """Reset on a ``reset`` service call; reply once done, or after RESET_REPLY_WAIT.
+
+        The reset waits for the end of the step in flight. A step that ends
+        within RESET_REPLY_WAIT (any small world's) gets the usual reply,
+        after the reset and its status; a longer one gets a reply at once
+        saying the reset follows that step. The executor serves other
+        callbacks meanwhile.
+        """
+        node = self.node
+        replied = Future()
+        since = node.world.time
+
+        def reset() -> None:
+            message = self._reset()
+            if not replied.done():
+                replied.set_result(message)
+        node.at_boundary(reset)
+        if not replied.done():
+            timer = node.create_timer(RESET_REPLY_WAIT, lambda: replied.done() or (
+                replied.set_result(f'resetting after the step in flight (from time {since:g} '
+                                   's)')), clock=self.steady)
+            try:
+                await replied
+            finally:
+                node.destroy_timer(timer)
+        response.message = replied.result()
         response.success = True
         return response
 
@@ -298,16 +393,25 @@ class CommandInterface:
 
     def _on_pause_service(self, request: SetBool.Request,
                           response: SetBool.Response) -> SetBool.Response:
-        """Pause (data true) or resume through the ``paused`` parameter, and reply."""
-        result = self.node.set_parameters([Parameter('paused', Parameter.Type.BOOL,
-                                                     bool(request.data))])[0]
+        """Pause (data true) or resume through the ``paused`` parameter, and reply at once.
+
+        The world stops (or goes on) after the step in flight, if one is;
+        the answer on ``events`` then carries the time it stopped at.
+        """
+        paused = bool(request.data)
+        node = self.node
+        result = node.set_parameters([Parameter('paused', Parameter.Type.BOOL, paused)])[0]
         response.success = result.successful
-        response.message = (f'{"paused" if request.data else "running"} at time '
-                            f'{self.node.world.time:g} s' if result.successful
-                            else f'pause: {result.reason}')
-        if result.successful:
-            self.answer('pause', None, True, paused=bool(request.data),
-                        time=self.node.world.time)
-        else:
+        state = 'paused' if paused else 'running'
+        if not result.successful:
+            response.message = f'pause: {result.reason}'
             self.answer('pause', None, False, reason=response.message)
+        else:
+            if node.stepper.busy:
+                response.message = (f'{state} after the step in flight (from time '
+                                    f'{node.world.time:g} s)')
+            else:
+                response.message = f'{state} at time {node.world.time:g} s'
+            node.at_boundary(lambda: self.answer('pause', None, True, paused=paused,
+                                                 time=node.world.time))
         return response

@@ -9,6 +9,15 @@ from typing import Optional
 RATE_WINDOW = 2.0            # s of wall time over which rates are measured
 STEP_BUDGET = 0.8            # share of a tick period the physics may use
 CAUGHT_UP_AFTER = 1.0        # s of wall time keeping up that end an episode of lagging
+# Falling behind is judged over LAG_WINDOW seconds of wall time: the node is
+# behind when it stepped less than (1 - LAG_SHORTFALL) of the simulated time
+# due in the window (a measured real-time factor below 80 % of the one asked)
+# AND at least LAG_TICKS ticks of the window came short. One late tick, however
+# late, is scheduler jitter on a loaded machine: its backlog is dropped and
+# counted, but it starts no episode.
+LAG_WINDOW = 2.0             # s of wall time
+LAG_SHORTFALL = 0.2          # share of the window's simulated time not stepped
+LAG_TICKS = 3                # short ticks within the window
 
 
 class Pacer:
@@ -64,40 +73,76 @@ class Pacer:
         return dropped
 
 
-class Lag:
-    """Episodes of falling behind, so that each is logged once.
+def came_short(done: int, due: int, dropped: float, dt: float) -> bool:
+    """Tell whether a tick came short: it took fewer steps than due, or dropped over a step.
 
-    An episode starts at the first tick that could not do everything due
-    and ends once the ticks kept up for ``CAUGHT_UP_AFTER`` seconds.
+    A tick that came late by less than a step (scheduler jitter) dropped that
+    bit of backlog too, but did not come short.
+    """
+    return done < due or dropped > dt
+
+
+class Lag:
+    """Episodes of truly falling behind, so that each is logged once.
+
+    Each tick is noted with the simulated time reached and whether it came
+    short (did not take every step due, or dropped more than a step of
+    backlog). An episode starts when, over the last ``window`` seconds of
+    wall time, the world advanced less than ``1 - shortfall`` of
+    ``factor x window`` and at least ``ticks`` ticks came short (see
+    LAG_WINDOW); it ends once no tick came short for ``caught_up_after``
+    seconds. A window is judged only once the ticks noted span it: after
+    the start, an episode's end, or :meth:`clear` (a reset, a resume, a new
+    factor).
     """
 
-    def __init__(self, caught_up_after: float = CAUGHT_UP_AFTER) -> None:
-        """Start keeping up."""
+    def __init__(self, caught_up_after: float = CAUGHT_UP_AFTER, window: float = LAG_WINDOW,
+                 shortfall: float = LAG_SHORTFALL, ticks: int = LAG_TICKS) -> None:
+        """Start keeping up, with an empty window."""
         self.caught_up_after = caught_up_after
+        self.window, self.shortfall, self.ticks = window, shortfall, ticks
         self.behind = False
         self.since: Optional[float] = None       # wall time the ticks began to keep up
         self.dropped = 0.0                       # simulated seconds dropped this episode
+        # (wall time, simulated time, came short, simulated seconds dropped) per tick.
+        self.samples: deque[tuple[float, float, bool, float]] = deque()
 
-    def note(self, wall: float, behind: bool, dropped: float = 0.0) -> Optional[str]:
+    def note(self, wall: float, sim_time: float, factor: float, short: bool,
+             dropped: float = 0.0) -> Optional[str]:
         """Record one tick; return 'start' or 'end' when an episode starts or ends."""
-        if behind:
-            self.since = None
-            if not self.behind:
-                self.behind, self.dropped = True, dropped
-                return 'start'
-            self.dropped += dropped
-            return None
+        samples = self.samples
+        samples.append((wall, sim_time, short, dropped))
+        # Keep the newest sample at or before the window's start as its reference.
+        while len(samples) > 1 and samples[1][0] <= wall - self.window:
+            samples.popleft()
         if self.behind:
-            if self.since is None:
+            self.dropped += dropped
+            if short:
+                self.since = None
+            elif self.since is None:
                 self.since = wall
             elif wall - self.since >= self.caught_up_after:
+                # A new episode is judged on a window of ticks after this one.
                 self.behind, self.since = False, None
+                samples.clear()
+                samples.append((wall, sim_time, short, dropped))
                 return 'end'
+            return None
+        span = wall - samples[0][0]
+        if span < self.window:
+            return None
+        advanced = sim_time - samples[0][1]
+        short_ticks = sum(1 for sample in list(samples)[1:] if sample[2])
+        if advanced < (1.0 - self.shortfall) * factor * span and short_ticks >= self.ticks:
+            self.behind, self.since = True, None
+            self.dropped = sum(sample[3] for sample in list(samples)[1:])
+            return 'start'
         return None
 
     def clear(self) -> None:
-        """Forget an episode (after a reset, a resume or a new factor)."""
+        """Forget an episode and the window (after a reset, a resume or a new factor)."""
         self.behind, self.since, self.dropped = False, None, 0.0
+        self.samples.clear()
 
 
 class RateMeter:

@@ -28,6 +28,11 @@ COMMAND_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=Reliability
                          durability=DurabilityPolicy.VOLATILE)
 # Answers: none may be dropped by the node either.
 EVENTS_QOS = COMMAND_QOS
+# Services (reset, pause): requests are kept until taken, so a burst of 500
+# concurrent calls from one client is answered whole (the services default,
+# keep last 10, answered 13 of 500). A client that sends such bursts needs a
+# deep response queue too (this profile), or it drops its own answers.
+SERVICE_QOS = COMMAND_QOS
 # Status: the newest one, kept for late joiners (a viewer started later).
 STATUS_QOS = reliable_qos(1, DurabilityPolicy.TRANSIENT_LOCAL)
 # Impacts: every tick's batch counts (a listener prints each impact), so a few seconds' worth.

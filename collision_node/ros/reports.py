@@ -30,17 +30,24 @@ DIAGNOSTICS_PERIOD = 1.0     # s of wall time between /diagnostics messages
 class Reports:
     """Publishers and timer of the reports; the node calls ``publish_collisions`` each tick."""
 
-    def __init__(self, node: Node, status: Callable[[], dict[str, Any]], steady: Clock) -> None:
-        """Create the publishers on ``node`` and the 1 Hz diagnostics timer on ``steady``."""
+    def __init__(self, node: Node, status: Callable[[], dict[str, Any]], steady: Clock,
+                 when_idle: Optional[Callable[[str, Callable[[], None]], None]] = None) -> None:
+        """Create the publishers on ``node`` and the 1 Hz diagnostics timer on ``steady``.
+
+        ``when_idle(key, work)`` runs work that reads the world once no step
+        is in flight (the node's ``when_idle``); without it, at once.
+        """
         self.node = node
+        self.when_idle = when_idle or (lambda key, work: work())
         self.status = status
         self.name = f'{node.get_fully_qualified_name().lstrip("/")}: simulation'
         self.pub_diagnostics = node.create_publisher(DiagnosticArray, '/diagnostics',
                                                      DIAGNOSTICS_QOS)
         self.pub_collisions = node.create_publisher(PointCloud2, 'particles/collisions',
                                                     COLLISIONS_QOS)
-        self.timer = node.create_timer(DIAGNOSTICS_PERIOD, self.publish_diagnostics,
-                                       clock=steady)
+        self.timer = node.create_timer(
+            DIAGNOSTICS_PERIOD, lambda: self.when_idle('diagnostics', self.publish_diagnostics),
+            clock=steady)
         self.recorder: Optional[Recorder] = None
 
     def publish_diagnostics(self) -> None:

@@ -23,7 +23,7 @@ from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
 from ..model.tunables import MAX_COLORS
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def greedy_colors(i, j, dynamic, max_colors):
     """Return each pair's colour (0 .. max_colors - 1), -1 for overflow, in pair order."""
     used = np.zeros(dynamic.size, dtype=np.uint64)

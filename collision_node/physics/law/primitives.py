@@ -49,7 +49,7 @@ def dot3(ax, ay, az, bx, by, bz):
     return (ax * bx + az * bz) + ay * by
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def pair_impulse(v, inv_mass, a, b, nx, ny, nz, e, tolerance):
     """Apply the law's normal impulse to pair (a, b) if it closes faster than ``tolerance``.
 
@@ -84,7 +84,7 @@ def spin_factor(inv_mass, radius, p):
     return -(SPIN_FACTOR * inv_mass[p] / radius[p])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def pair_friction(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu, planar):
     """Coulomb friction with spin at one contact (``b`` < 0: a static wall).
 
@@ -317,7 +317,7 @@ def friction_vector(bodies, first, second, normal, normal_impulse, mu, planar, s
     return math.sqrt(dot3(jx, jy, jz, jx, jy, jz)), removed, (jx, jy, jz)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def line_of_action(ox, oy, oz, rx, ry, rz):
     """Return (N, |offset|) of one offset, as ``narrowphase.line_of_action`` (same operations).
 

@@ -48,7 +48,7 @@ def particle_arrays(state) -> ParticleArrays:
                           np.ascontiguousarray(state.inv_mass, dtype=np.float64))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def apply_gravity(position, velocity, inv_mass, shift, kick):
     """Add ``shift`` to positions and ``kick`` to velocities of particles with inv_mass > 0."""
     for p in range(position.shape[0]):
@@ -58,7 +58,7 @@ def apply_gravity(position, velocity, inv_mass, shift, kick):
                 velocity[p, d] += kick[d]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def rotate_orientations(orientation, angular_velocity, dt):
     """Rotate quaternions [x, y, z, w] in place by angular_velocity * dt."""
     for p in range(orientation.shape[0]):
@@ -93,20 +93,20 @@ def _finite(a):
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def all_finite(position, velocity, angular):
     """Return whether every entry of the three arrays is finite (``angular`` may be empty)."""
     return _finite(position) and _finite(velocity) and _finite(angular)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def add_losses(losses, i, removed):
     """``np.add.at(losses, i, removed)``: the same additions in the same order."""
     for k in range(i.size):
         losses[i[k]] += removed[k]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def add_pair_losses(losses, inv_mass, i, j, removed):
     """Attribute each pair's ``removed`` to i and j by inverse-mass share, as ``book`` does.
 
@@ -123,7 +123,7 @@ def add_pair_losses(losses, inv_mass, i, j, removed):
         losses[j[k]] += removed[k] * (1.0 - w_i / (w_i + inv_mass[j[k]]))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def finish_lift(work, inv_mass):
     """Turn ``work`` = dx . g into -m g . dx in place (0 where inv_mass is 0), ``energy.lift``."""
     for p in range(work.size):

@@ -124,7 +124,7 @@ def _clamp_inside(particles, dynamic, walls):
                 position[p, axis] = plane + inward * radius[p]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def project_overlaps(particles, dynamic, contacts, walls, passes, hold):
     """Run the separation stage's projection on ``particles.position`` in place.
 
@@ -162,7 +162,7 @@ def project_overlaps(particles, dynamic, contacts, walls, passes, hold):
             _clamp_inside(particles, dynamic, walls)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def pay_for_lift(particles, dynamic, pair_first, pair_second, start, added, budget):
     """Take back what the projection's net lift adds per cluster; return J removed per particle.
 

@@ -88,7 +88,7 @@ def _dense_bucket(cx, cy, cz, lx, ly, lz, nx, ny):
     return ((cz - lz) * ny + (cy - ly)) * nx + (cx - lx)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def build_grid(position, reach, order, class_start):
     """Return every class's grid (``Grid``).
 
@@ -271,7 +271,7 @@ def _grown(out, count, size):
     return grown
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def sort_pairs(a, b, count, n):
     """Return the ``Pairs`` (min, max) of the first ``count`` of (a, b), sorted by (i, j).
 
@@ -388,7 +388,7 @@ def _dense_grid_pairs(reach, grid):
         size *= 4
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def grid_pairs(reach, grid):
     """Return the ``Pairs`` (i < j, sorted) with |p_i - p_j| <= reach_i + reach_j (and slack).
 
@@ -435,7 +435,7 @@ class Partners(NamedTuple):
     class_reach: np.ndarray     # (classes,) the largest of each class, m
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def grid_query(position, query, query_reach, partners, grid):
     """Return ``Pairs`` (a, b): each query particle a = query[q] against every item b near it.
 
@@ -470,7 +470,7 @@ def partner_terms(values: np.ndarray, grid: Grid) -> Partners:
     return Partners(in_order, np.maximum.reduceat(in_order, grid.class_start[:-1]))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def movers(position, built, extra, half_skin):
     """Return the particles with |position - built| + extra > half_skin (ascending)."""
     n = position.shape[0]
@@ -485,7 +485,7 @@ def movers(position, built, extra, half_skin):
     return out[:count]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def merge_pairs(keys, listed, extra, n):
     """Return the listed ``Pairs`` joined with ``extra``: sorted by (i, j), i != j, no repeats.
 

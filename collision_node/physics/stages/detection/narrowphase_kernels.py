@@ -25,7 +25,7 @@ class ContactArrays(NamedTuple):
     penetration: np.ndarray     # (m,) r_first + r_second - |p_first - p_second|, m
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def find_overlaps(particles, candidate_first, candidate_second):
     """Return the ``ContactArrays`` of the candidate pairs that overlap, in candidate order.
 

@@ -420,7 +420,7 @@ def _slope_root(ox, oy, oz, wx, wy, wz, hx, hy, hz, lo, hi):
     return hi
 
 
-@njit(cache=True, error_model='numpy')
+@njit(cache=True, nogil=True, error_model='numpy')
 def curved_delay(dx, dy, dz, ux, uy, uz, ax, ay, az, reach, horizon):
     """Delay until a pair whose accelerations differ touches, within ``horizon``; inf for none.
 
@@ -796,7 +796,7 @@ def _keeps_supports(supports, p, normal):
 # Without the runtime's reference counting (``_nrt=False``): the kernel
 # allocates nothing, and the counts numba keeps for every array handed to an
 # inlined helper would cost atomic updates in the innermost loops.
-@njit(cache=True, error_model='numpy', _nrt=False)
+@njit(cache=True, nogil=True, error_model='numpy', _nrt=False)
 def run_events(settings, particles, supports, grid, schedule, candidates, heap, tally, impacts,
                world):
     """Process every event up to ``settings.end``, then publish every particle there.
@@ -978,7 +978,7 @@ def run_events(settings, particles, supports, grid, schedule, candidates, heap, 
     return DONE
 
 
-@njit(cache=True, error_model='numpy')
+@njit(cache=True, nogil=True, error_model='numpy')
 def build_events(settings, particles, supports, grid, schedule, candidates, heap, tally):
     """Fill the grid, predict every dynamic particle (each pair once) and order the heap.
 
@@ -997,7 +997,7 @@ def build_events(settings, particles, supports, grid, schedule, candidates, heap
     heapify(heap, schedule)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def matches(position, velocity, inv_mass, radius, particles, order):
     """Say whether the world's particle arrays still hold what the last step published."""
     for p in range(particles.position.shape[0]):

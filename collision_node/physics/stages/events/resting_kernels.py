@@ -84,7 +84,7 @@ def _spacing(x):
     return _EPSILON * abs(x)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def collect(position, velocity, inv_mass, radius, pair_first, pair_second, low_walls,
             high_walls, dimensions, rest_speed, contacts):
     """Write the resting contacts into ``contacts``; return their count.
@@ -170,7 +170,7 @@ def _push_wall(v, inv_mass, p, axis, inward, magnitude):
     return -(magnitude * 0.5 * (before + after))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def project_velocities(velocity, inv_mass, contacts, m, tolerance, removed, info):
     """Set the first ``m`` contacts' normal speeds to zero (either way); book what it removes.
 
@@ -215,7 +215,7 @@ def _velocity_sweeps(velocity, inv_mass, contacts, m, tolerance, removed, relaxa
     return sweeps
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def support_forces(acceleration, inv_mass, gravity, contacts, m, force, tolerance, info):
     """Solve the first ``m`` contacts' forces (N) and each particle's acceleration (m/s^2).
 
@@ -289,7 +289,7 @@ def _apply_force(acceleration, inv_mass, i, j, normal, k, change):
         acceleration[i, axis] += change * inv_mass[i] * normal[k, axis]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def warm_forces(contacts, m, old_partner, old_force, force):
     """Start each contact's force from the last step's on the same contact (0 if new)."""
     for k in range(m):
@@ -303,7 +303,7 @@ def warm_forces(contacts, m, old_partner, old_force, force):
                 break
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def supports(inv_mass, gravity, contacts, m, force, found, partner_force):
     """Mark supported particles and their resting contacts in ``found``; return FOUND or TOO_MANY.
 

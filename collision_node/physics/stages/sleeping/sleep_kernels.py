@@ -62,7 +62,7 @@ def _travel(velocity, p, dt, sag):
     return math.sqrt(vx * vx + vy * vy + vz * vz) * dt + sag
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def settle_islands(particles, islands, pair_first, pair_second, wake_reach, stillness):
     """Update timers and islands in place; return the mask of particles that fell asleep.
 
@@ -144,7 +144,7 @@ def settle_islands(particles, islands, pair_first, pair_second, wake_reach, stil
     return fell
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def near_sleepers(position, velocity, radius, awake, sleepers, candidate_awake,
                   candidate_sleeper, wake_reach):
     """Return the mask of candidate pairs (awake, sleeping) within waking reach.
@@ -166,7 +166,7 @@ def near_sleepers(position, velocity, radius, awake, sleepers, candidate_awake,
     return hit
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def sleepers_within_reach(position, velocity, radius, awake, sleepers, wake_reach):
     """Return the mask of ``sleepers`` within waking reach of any of ``awake``.
 

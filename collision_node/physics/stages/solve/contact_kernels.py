@@ -865,7 +865,7 @@ def _kept(ids, pairs, walls, pair_impulses, wall_impulses, keyed):
                           new_wall_tangential)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def solve_step(bodies, position, ids, contacts, planes, coefficients, settings, cache,
                booked):
     """Run a whole step's contact solve in one call (``_solve_step``); return ``SolveResult``.
@@ -925,7 +925,7 @@ def _solve_step(bodies, position, ids, contacts, planes, coefficients, settings,
                        _kept(ids, pairs, walls, pair_impulses, wall_impulses, keyed))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def jacobi_sweeps(bodies, contacts, coefficients, iterations):
     """Solve the pairs batched (``_jacobi_sweeps``); the records as plain tuples.
 

@@ -78,7 +78,7 @@ def _grow(floats, ints, count):
     return more_f, more_i
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def wall_pass(bodies, position, planes, coefficients, motion):
     """Reflect every particle found past a plane (``_wall_pass``); return ``WallRows``.
 

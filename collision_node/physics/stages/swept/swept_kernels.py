@@ -1144,7 +1144,7 @@ def _predict_added_pairs(p, round_, particles, pairs, clock, incidence, settings
     return n_pending
 
 
-@njit(cache=True, error_model='numpy')
+@njit(cache=True, nogil=True, error_model='numpy')
 def sweep(particles, own, box, settings, candidates, escapes, tally, pairs, clock, incidence):
     """Run one step of the swept stage in place; see ``SweptContactStage`` for the rules.
 
@@ -1311,7 +1311,7 @@ def sweep(particles, own, box, settings, candidates, escapes, tally, pairs, cloc
     return SweepResult(records[:count], index[:count])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def in_contact(x, radius, a, b, slop, has_walls, low, high, dimensions, pairs, walls):
     """Mark the pairs and particle-wall columns touching at the step start.
 
