@@ -101,6 +101,7 @@ class EventDrivenStage(Stage):
         self._build_fallback = fallback
         self._fallback_streak = 0
         self._hold = 0
+        self._entries: dict = {}        # compiled entry points (``_compiled``)
         # Resting contact (under gravity): this step's supports in the world's
         # order (None: nobody is supported), whether the last step had any, and
         # the last step's partners and forces (world indices; the next solve's
@@ -137,18 +138,23 @@ class EventDrivenStage(Stage):
         cell = np.ascontiguousarray(cell[self.order])
         self.grid = ek.new_grid(cell, self._table_shape(cell, dimensions))
         self.tally = np.zeros(1, dtype=ek.TALLY)
+        self.supports = self._stage_supports(n)
         self.settings = ek.Settings(
-            end=end, budget=max(MIN_EVENT_BUDGET, self.event_budget * n), dimensions=dimensions,
+            end=float(end), budget=self._budget(n), own_restitution=own is not None,
+            record=False, book_losses=False, dimensions=int(dimensions),
             cell_size=float(self.cell_size), collapse_time=float(self.collapse_time),
             threshold=float(self.threshold), pair_restitution=float(self.restitution),
             wall_restitution=1.0 if self.walls is None else float(self.walls.restitution),
             gravity=self.gravity, half_gravity=self.half_g, low_walls=self.low_walls,
             high_walls=self.high_walls, under_gravity=self.under_gravity,
-            has_walls=self.walls is not None, own_restitution=own is not None,
-            own_acceleration=self._supports is not None, record=False, book_losses=False)
-        self.supports = self._stage_supports(n)
-        ek.build_events(self.settings, self.particles, self.supports, self.grid, self.schedule,
-                        self.candidates, self.heap, self.tally)
+            has_walls=self.walls is not None, own_acceleration=self._supports is not None)
+        records = (self.settings, self.particles, self.supports, self.grid, self.schedule,
+                   self.candidates, self.heap, self.tally)
+        self._compiled(ek.build_events, records, state)(*records)
+
+    def _budget(self, n: int) -> int:
+        """Return the events a step of ``n`` particles may take."""
+        return int(max(MIN_EVENT_BUDGET, self.event_budget * n))
 
     def _stage_supports(self, n: int) -> rk.Supports:
         """Return this step's supports in the stage's order (no rows: nobody supported)."""
@@ -259,7 +265,8 @@ class EventDrivenStage(Stage):
         return (state is self._state and len(state) == len(self.schedule)
                 and state.position.shape == self.particles.position.shape
                 and ek.matches(state.position, state.velocity, state.inv_mass, state.radius,
-                               self.particles, self.order))
+                               self.particles.position, self.particles.velocity,
+                               self.particles.inv_mass, self.particles.radius, self.order))
 
     # -- the stage ---------------------------------------------------------
 
@@ -294,51 +301,63 @@ class EventDrivenStage(Stage):
         if own is not None:
             self.particles = self.particles._replace(
                 restitution=np.asarray(own, float)[self.order])
-        settings = self.settings._replace(
-            end=end, budget=max(MIN_EVENT_BUDGET, self.event_budget * n), record=record,
-            book_losses=ctx.losses is not None, own_restitution=own is not None)
+        # The step's five settings, then the ones of the last rebuild.
+        settings = ek.Settings(float(end), self._budget(n), own is not None, record,
+                               ctx.losses is not None, *self.settings[5:])
         tally = self.tally
-        largest = tally['largest_occupancy'][0]
-        tally[0] = 0                    # this step's counters (the largest occupancy stays)
-        tally['largest_occupancy'] = largest
         dissipated = ctx.stats.dissipated
-        tally['restitution_dissipated'] = dissipated.get('restitution', 0.0)
-        tally['walls_dissipated'] = dissipated.get('walls', 0.0)
+        ek.start_tally(tally, dissipated.get('restitution', 0.0), dissipated.get('walls', 0.0))
         losses = np.zeros(n) if ctx.losses is not None else _NO_LOSSES
         world = ek.WorldArrays(self.order, state.position, state.velocity, losses)
         impacts = ek.new_impact_buffer(64) if record else _NO_IMPACTS
+        records = (settings, self.particles, self.supports, self.grid, self.schedule,
+                   self.candidates, self.heap, tally)
+        run_events = self._compiled(ek.run_events, records + (impacts, world), state)
         while True:
-            status = ek.run_events(settings, self.particles, self.supports, self.grid,
-                                   self.schedule, self.candidates, self.heap, tally, impacts,
-                                   world)
-            if status != ek.GROW:
+            outcome = run_events(*records, impacts, world)
+            if outcome.status != ek.GROW:
                 break
             impacts = ek.grown(impacts)     # the buffer is full: the loop goes on
-        if status != ek.DONE:
+        if outcome.status != ek.DONE:
             # The world's state is untouched: let the step solver take the step.
             self._fall_back(ctx)
             return
         self._fallback_streak = 0
-        counts = tally[0]
-        self.events += int(counts['events'])
-        self.impacts += int(counts['collisions'] + counts['wall_collisions'])
-        self.crossings += int(counts['crossings'])
-        self.refreshes += int(counts['refreshes'])
-        ctx.stats.collisions += int(counts['collisions'])
-        ctx.stats.wall_collisions += int(counts['wall_collisions'])
+        self.events += outcome.events
+        self.impacts += outcome.collisions + outcome.wall_collisions
+        self.crossings += outcome.crossings
+        self.refreshes += outcome.refreshes
+        ctx.stats.collisions += outcome.collisions
+        ctx.stats.wall_collisions += outcome.wall_collisions
         # The totals were summed impact after impact, as bookings one by one would.
-        if counts['booked_pairs']:
-            dissipated['restitution'] = float(counts['restitution_dissipated'])
-        if counts['booked_walls']:
-            dissipated['walls'] = float(counts['walls_dissipated'])
+        if outcome.booked_pairs:
+            dissipated['restitution'] = outcome.restitution_dissipated
+        if outcome.booked_walls:
+            dissipated['walls'] = outcome.walls_dissipated
         if ctx.losses is not None:
             ctx.losses += losses
-        k = int(counts['recorded'])
+        k = outcome.recorded
         if record and k:
             ctx.impacts.record(impacts.time[:k], impacts.first[:k], impacts.second[:k],
                                impacts.point[:k], impacts.normal[:k], impacts.impulse[:k], 0.0,
                                impacts.approach[:k])
         self.time = end
+
+    def _compiled(self, kernel: Callable, args: tuple, state: ParticleState) -> Callable:
+        """Return ``kernel``'s compiled entry point for ``args`` (``event_kernels.entry_point``).
+
+        Every array the stage hands a kernel is its own, of fixed types,
+        except the world's (``state``'s) and the copies of them: an entry
+        point is kept per kernel and type of the world's arrays.
+        """
+        position, velocity, inv_mass, radius = (state.position, state.velocity,
+                                                state.inv_mass, state.radius)
+        key = (kernel, position.dtype, position.ndim, position.flags.num, velocity.dtype,
+               velocity.ndim, velocity.flags.num, inv_mass.dtype, radius.dtype)
+        entry = self._entries.get(key)
+        if entry is None:
+            entry = self._entries[key] = ek.entry_point(kernel, args)
+        return entry
 
     def _fall_back(self, ctx: StepContext) -> None:
         """Hand this step to the step solver and hold the next ones there a while."""

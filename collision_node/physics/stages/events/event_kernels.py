@@ -65,10 +65,13 @@ _INF = np.inf
 
 
 class Settings(NamedTuple):
-    """What one step's event loop reads and never changes (SI units)."""
+    """What one step's event loop reads and never changes (SI units; the step's five first)."""
 
     end: float                  # s: the step's end
     budget: int                 # events the step may take (chores: 4 budget)
+    own_restitution: bool       # particles have their own e (``Particles.restitution``)
+    record: bool                # write impacts to the ``ImpactBuffer``
+    book_losses: bool           # add each particle's losses to ``WorldArrays.losses``
     dimensions: int
     cell_size: float            # m
     collapse_time: float        # s: an impact this soon after another is elastic (TC model)
@@ -81,10 +84,7 @@ class Settings(NamedTuple):
     high_walls: np.ndarray      # (3,) m, inf where open
     under_gravity: bool
     has_walls: bool
-    own_restitution: bool       # particles have their own e (``Particles.restitution``)
     own_acceleration: bool      # particles have their own acceleration (``Supports``)
-    record: bool                # write impacts to the ``ImpactBuffer``
-    book_losses: bool           # add each particle's losses to ``WorldArrays.losses``
 
 
 class Particles(NamedTuple):
@@ -141,7 +141,8 @@ class Heap(NamedTuple):
     slot: np.ndarray            # (n,) int64: each particle's slot
 
 
-# What a run counts (one row, kept by the stage: a step's counters start at 0).
+# What a run counts (one row; a step starts it at 0 and at the step's dissipated
+# totals so far, and a run resumed after GROW goes on from it).
 TALLY = np.dtype([
     ('events', np.int64),               # impacts, wall visits and cell crossings taken
     ('collisions', np.int64),           # pair impacts
@@ -151,7 +152,6 @@ TALLY = np.dtype([
     ('refreshes', np.int64),            # fresh predictions of a full list
     ('predictions', np.int64),          # particles predicted afresh
     ('recorded', np.int64),             # rows written to the impact buffer
-    ('largest_occupancy', np.int64),    # most particles seen in one slot
     ('booked_pairs', np.int64),         # 1 when a pair impact booked restitution
     ('booked_walls', np.int64),         # 1 when a wall impact booked walls
     ('restitution_dissipated', np.float64),  # J: the step's total so far, impact by impact
@@ -178,6 +178,22 @@ class WorldArrays(NamedTuple):
     position: np.ndarray        # (n, 3) m
     velocity: np.ndarray        # (n, 3) m/s
     losses: np.ndarray          # (n,) J booked per particle (no rows: not booked)
+
+
+class Outcome(NamedTuple):
+    """What a run returns: its status and the step's counts so far (the tally's)."""
+
+    status: int                 # DONE, NOT_EXACT or GROW
+    events: int
+    collisions: int
+    wall_collisions: int
+    crossings: int
+    refreshes: int
+    recorded: int
+    booked_pairs: int
+    booked_walls: int
+    restitution_dissipated: float   # J: the step's total, from the one it started with
+    walls_dissipated: float         # J
 
 
 # -- the heap of particles ----------------------------------------------------
@@ -549,7 +565,7 @@ def _slot(p, grid):
 
 
 @njit(cache=True, inline='always')
-def _insert(p, grid, tally):
+def _insert(p, grid):
     """Put particle ``p`` at the head of its cell's slot list."""
     s = _slot(p, grid)
     first = grid.head[s]
@@ -558,9 +574,6 @@ def _insert(p, grid, tally):
         grid.previous_in_slot[first] = p
     grid.head[s] = p
     grid.occupancy[s] += 1
-    counts = tally[0]
-    if grid.occupancy[s] > counts.largest_occupancy:
-        counts.largest_occupancy = grid.occupancy[s]
 
 
 @njit(cache=True, inline='always')
@@ -725,7 +738,7 @@ def _predict(p, bump, skip_before, settings, particles, supports, grid, schedule
 
 
 @njit(cache=True, inline='always')
-def _enter_cell(p, grid, schedule, candidates, tally):
+def _enter_cell(p, grid, schedule, candidates):
     """Move p into the next cell; return the axis and side (+1, -1) of its new layer.
 
     Candidates whose partner changed path are dropped now (room for new ones).
@@ -742,7 +755,7 @@ def _enter_cell(p, grid, schedule, candidates, tally):
     else:
         cell[p, axis] -= 1
         slot[p, axis] = wrap - 1 if slot[p, axis] == 0 else slot[p, axis] - 1
-    _insert(p, grid, tally)
+    _insert(p, grid)
     for k in range(schedule[p].held - 1, -1, -1):
         q = candidates.partner[p, k]
         if schedule[q].changes != candidates.stamp[p, k]:
@@ -751,6 +764,14 @@ def _enter_cell(p, grid, schedule, candidates, tally):
 
 
 # -- events -------------------------------------------------------------------
+
+@njit(cache=True, inline='always')
+def _outcome(status, counts):
+    """Return the ``Outcome`` of a run that ends with ``status`` (``counts``: the tally's row)."""
+    return Outcome(status, counts.events, counts.collisions, counts.wall_collisions,
+                   counts.crossings, counts.refreshes, counts.recorded, counts.booked_pairs,
+                   counts.booked_walls, counts.restitution_dissipated, counts.walls_dissipated)
+
 
 @njit(cache=True, inline='always')
 def _record(impacts, tally, when, first, second, point, normal, impulse, approach):
@@ -801,7 +822,7 @@ def run_events(settings, particles, supports, grid, schedule, candidates, heap, 
                world):
     """Process every event up to ``settings.end``, then publish every particle there.
 
-    Returns the status. On ``NOT_EXACT`` (an event the TC model would have
+    Returns the ``Outcome``. On ``NOT_EXACT`` (an event the TC model would have
     to alter under gravity, an impact that would change the normal speed at
     a support of a supported particle (``_keeps_supports``), or more events
     than the budget) the records are left mid-step and the world's arrays
@@ -834,7 +855,7 @@ def run_events(settings, particles, supports, grid, schedule, candidates, heap, 
                 # Its partner changed path since: drop it, take p's next one.
                 counts.chores += 1
                 if counts.chores > 4 * budget:
-                    return NOT_EXACT
+                    return _outcome(NOT_EXACT, counts)
                 _drop(p, which, schedule, candidates)
                 _set_next(p, schedule, candidates)
                 heap_update(heap, schedule, p)
@@ -842,18 +863,18 @@ def run_events(settings, particles, supports, grid, schedule, candidates, heap, 
         # Who is predicted after this event, whether their paths changed, and
         # whether it is a crossing (then only the new layer of cells).
         if record and counts.recorded >= impacts.time.shape[0]:
-            return GROW
+            return _outcome(GROW, counts)
         first, second, bump, crossing = p, -1, True, False
         if which == NEXT_REFRESH:
             counts.chores += 1
             counts.refreshes += 1
             if counts.chores > 4 * budget:
-                return NOT_EXACT
+                return _outcome(NOT_EXACT, counts)
             _advance(settings, particles, supports, schedule, p, when)
             bump = False
         else:
             if counts.events >= budget:
-                return NOT_EXACT
+                return _outcome(NOT_EXACT, counts)
             counts.events += 1
         if which == NEXT_REFRESH:
             pass
@@ -870,7 +891,7 @@ def run_events(settings, particles, supports, grid, schedule, candidates, heap, 
             if varied and -dot3(rx, ry, rz, nx, ny, nz) > 0.0 and not (
                     _keeps_supports(supports, p, (nx, ny, nz))
                     and _keeps_supports(supports, q, (nx, ny, nz))):
-                return NOT_EXACT
+                return _outcome(NOT_EXACT, counts)
             e = combined_coefficient(particles.restitution, has_own, p, q,
                                      settings.pair_restitution)
             if threshold > 0.0 and -dot3(rx, ry, rz, nx, ny, nz) < threshold:
@@ -878,7 +899,7 @@ def run_events(settings, particles, supports, grid, schedule, candidates, heap, 
             if (when - schedule[p].last_impact < collapse
                     or when - schedule[q].last_impact < collapse) and e < 1.0:
                 if under_gravity:
-                    return NOT_EXACT
+                    return _outcome(NOT_EXACT, counts)
                 e = 1.0     # TC model: an impact this soon after another is elastic
             magnitude, approach, removed = pair_impulse(velocity, inv_mass, p, q, nx, ny, nz, e,
                                                         0.0)
@@ -917,7 +938,7 @@ def run_events(settings, particles, supports, grid, schedule, candidates, heap, 
                 if varied and not _keeps_supports(supports, p, (1.0 if axis == 0 else 0.0,
                                                                 1.0 if axis == 1 else 0.0,
                                                                 1.0 if axis == 2 else 0.0)):
-                    return NOT_EXACT
+                    return _outcome(NOT_EXACT, counts)
                 e = combined_coefficient(particles.restitution, has_own, p, -1,
                                          settings.wall_restitution)
                 if threshold > 0.0 and speed_in < threshold:
@@ -925,7 +946,7 @@ def run_events(settings, particles, supports, grid, schedule, candidates, heap, 
                 if when - schedule[p].last_impact < collapse:
                     resting = pushed_in > 0.0 and speed_in < 0.5 * pushed_in * collapse
                     if under_gravity and (e < 1.0 or resting):
-                        return NOT_EXACT
+                        return _outcome(NOT_EXACT, counts)
                     e = 1.0
                 plane = settings.high_walls[axis] if side else settings.low_walls[axis]
                 inward = -toward
@@ -957,7 +978,7 @@ def run_events(settings, particles, supports, grid, schedule, candidates, heap, 
                 continue
             along, offset = -1, 0
             if crossing:
-                along, offset = _enter_cell(r, grid, schedule, candidates, tally)
+                along, offset = _enter_cell(r, grid, schedule, candidates)
             else:
                 if bump:
                     schedule[r].changes += 1
@@ -975,7 +996,7 @@ def run_events(settings, particles, supports, grid, schedule, candidates, heap, 
         for c in range(3):
             world.position[k, c] = position[p, c]
             world.velocity[k, c] = velocity[p, c]
-    return DONE
+    return _outcome(DONE, counts)
 
 
 @njit(cache=True, nogil=True, error_model='numpy')
@@ -987,7 +1008,7 @@ def build_events(settings, particles, supports, grid, schedule, candidates, heap
     """
     n = particles.position.shape[0]
     for p in range(n):
-        _insert(p, grid, tally)
+        _insert(p, grid)
     for p in range(n):
         if particles.inv_mass[p] > 0.0:
             _predict(p, False, p, settings, particles, supports, grid, schedule, candidates,
@@ -998,17 +1019,41 @@ def build_events(settings, particles, supports, grid, schedule, candidates, heap
 
 
 @njit(cache=True, nogil=True)
-def matches(position, velocity, inv_mass, radius, particles, order):
-    """Say whether the world's particle arrays still hold what the last step published."""
-    for p in range(particles.position.shape[0]):
+def matches(position, velocity, inv_mass, radius, own_position, own_velocity, own_inv_mass,
+            own_radius, order):
+    """Say whether the world's particle arrays still hold what the last step published.
+
+    ``own_*`` are the stage's copies (``Particles``'s, plain arrays: this runs
+    every step, and a NamedTuple argument costs its dispatch a microsecond a
+    field).
+    """
+    for p in range(own_position.shape[0]):
         k = order[p]
-        if inv_mass[k] != particles.inv_mass[p] or radius[k] != particles.radius[p]:
+        if inv_mass[k] != own_inv_mass[p] or radius[k] != own_radius[p]:
             return False
         for c in range(3):
-            if position[k, c] != particles.position[p, c] \
-                    or velocity[k, c] != particles.velocity[p, c]:
+            if position[k, c] != own_position[p, c] or velocity[k, c] != own_velocity[p, c]:
                 return False
     return True
+
+
+def entry_point(kernel, args: tuple):
+    """Return ``kernel``'s compiled entry point for the types of ``args`` (loaded or compiled).
+
+    Calling it skips numba's dispatch, which types every field of a
+    NamedTuple argument in Python at each call (about a microsecond a field,
+    a third of a step of a 1,000-particle gas). The caller must call it only
+    with arguments of these types.
+    """
+    return kernel.compile(tuple(kernel.typeof_pyval(value) for value in args))
+
+
+def start_tally(tally: np.ndarray, restitution: float, walls: float) -> None:
+    """Start a step's tally: every count 0, the dissipated totals at the step's so far (J)."""
+    tally[0] = _ZERO_COUNTS + (restitution, walls)
+
+
+_ZERO_COUNTS = (0,) * (len(TALLY.names) - 2)
 
 
 def new_schedule(n: int, time: float) -> np.ndarray:
@@ -1071,7 +1116,8 @@ def warm_up() -> None:
     world = WorldArrays(np.arange(2), position.copy(), velocity.copy(), np.zeros(2))
     run_events(settings, particles, supports, grid, schedule, candidates, heap, tally,
                new_impact_buffer(4), world)
-    matches(world.position, world.velocity, particles.inv_mass, particles.radius, particles,
+    matches(world.position, world.velocity, particles.inv_mass, particles.radius,
+            particles.position, particles.velocity, particles.inv_mass, particles.radius,
             world.order)
     curved_delay(1.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.5, 1.0)
 
