@@ -109,6 +109,33 @@ CELL_MARGIN = 4e-6
 # The bound on the cells per axis that rounding argument assumes.
 DENSE_AXIS_CELLS = 2 ** 24
 
+# --- Memory of a step (stages/detection) ---------------------------------------------------------
+
+# The most memory a step's candidate pairs may take, bytes (default 2 GiB).
+# A world whose broadphase would hold more (particles piled on each other,
+# or a swept reach |v| dt far wider than the particles, even searched along
+# their paths) is refused at the request (scene load, spawn, accuracy) or
+# at the step with ``broadphase.StepTooLarge``, saying how many pairs it
+# would need; it never takes the process down. More admits denser or
+# faster worlds on a machine with the memory for them.
+STEP_MEMORY_BUDGET = 2 * 1024 ** 3
+
+# What one candidate pair may cost across a step's buffers, bytes (an upper
+# estimate: the broadphase's search, sort, list and merge and the swept
+# contacts' arrays took about 40 at the peak of a balanced step, the discrete
+# narrowphase adds 48 per candidate; the rest is room for buffers that grow).
+# The budget over this is the most pairs a search may hold
+# (``broadphase.MAX_PAIRS``, 8.4e6 by default).
+PAIR_BYTES = 256
+
+# The most pair tests a search along paths makes before it gives up (about
+# a second of compiled tests): bounds the time a refusal takes.
+MAX_PATH_TESTS = 200_000_000
+
+# Slack of the path test, in the length of the pair's relative path over the
+# step: far above the rounding of the closest approach d + s u.
+PATH_SLACK = 1e-9
+
 # --- Event-driven exact mode (stages/events) -----------------------------------------------------
 
 # Cells hold about this many particles (cells are never narrower than a

@@ -18,6 +18,7 @@ from ..model.effects import check_particles_for_effects
 from ..model.impacts import ImpactLog
 from ..model.particles import MAX_SPEED
 from .plan import build_pipeline
+from ..stages.detection.broadphase import check_pair_budget, StepTooLarge, swept_allowance
 from ..stages.sleeping.sleep import asleep_count, sleepers_touching, wake_islands
 from .pipeline import StepContext, StepStats
 from .step_kernels import all_finite
@@ -64,6 +65,7 @@ class World:
         self.step_seconds = 0.0
         self.timed_steps = 0
         self._first_step: Optional[tuple[float, dict[str, float]]] = None
+        self._check_pairs(self.state, self.scene.source)
         # Potential energy is measured from the grid point nearest the scene's
         # initial centre of mass (the origin for a scene near it; see
         # ``energy``), so it keeps its digits however far from the origin.
@@ -87,6 +89,23 @@ class World:
         if state.orientation is None:
             arrays['orientation'] = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
         return state.with_arrays(**arrays) if arrays else state
+
+    def _check_pairs(self, state: ParticleState, source: str,
+                     added: Optional[int] = None) -> None:
+        """Refuse a state whose step's candidate pairs would not fit the memory budget.
+
+        ``added``: the state's last ``added`` particles are a spawn's (the
+        rest was checked before).
+        """
+        accuracy = self.scene.accuracy
+        dt = self.scene.dt / accuracy.substeps
+        extra = swept_allowance(state.velocity, state.dynamic, dt, self.scene.effects.gravity) \
+            if accuracy.ccd else None
+        try:
+            check_pair_budget(state.position, state.radius, state.velocity, state.inv_mass, dt,
+                              extra, added)
+        except StepTooLarge as error:
+            raise StepTooLarge(f'{source}: {error}') from None
 
     @property
     def dt(self) -> float:
@@ -176,11 +195,13 @@ class World:
         first = self.next_id
         ids = np.arange(first, first + len(particles), dtype=np.int64)
         added = self._with_spin_state(particles.with_arrays(ids=ids))
+        combined = self.state.concatenate(added)
+        self._check_pairs(combined, source, len(added))
         if not self.state.dynamic.any():
             # No dynamic particle yet, so every potential so far is 0 whatever
             # the reference: take the newcomers' point, as a scene's start does.
             self.reference = energy.reference_point(added)
-        self.state = self.state.concatenate(added)
+        self.state = combined
         self.next_id = first + len(particles)
         self.energy_spawned += self._mechanical(added)
         return ids

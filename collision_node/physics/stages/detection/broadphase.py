@@ -3,27 +3,30 @@
 Particles are sorted into size classes by their reach (radius plus any
 margin): class k holds reaches in [m * 2^k, m * 2^(k+1)), m the smallest
 reach. Each class gets a uniform cell grid, cells twice the class's largest
-reach wide, built by a counting sort in compiled code (``grid_kernels``;
-dense rows of cells for compact scenes, hashed cells for scattered ones).
-Each particle is searched in its own class and in every larger class
-within its own reach plus that class's largest (at most 3 cells per
-axis). Within a class reaches differ by less than a factor of two, so
-these searches find only a bounded multiple of the pairs that really are
-near, whatever the mix of sizes: ten-times-larger particles are never
-paired all-to-all, and a small particle is never searched with a large
-one's reach. Every pair found is then checked against its own
-reach_i + reach_j, so the result is exactly
-the set of near pairs. Per-step cost grows about linearly with the count.
+reach wide (``grid_kernels``). Each particle is searched in its own class
+and in every larger class within its own reach plus that class's largest,
+and every pair found is checked against its own reach_i + reach_j, so the
+result is exactly the set of near pairs and the work stays proportional to
+it, whatever the mix of sizes.
 
 The stage does not search every step. It keeps a Verlet list: the pairs
 within r_i + r_j + skin at the last search, valid as long as no two
-particles have together moved more than the skin since (two particles
-each moved at most skin/2 cannot have closed a gap larger than the skin).
-The check uses the actual positions, so it covers drift, separation, walls
-and any other stage. The few fast particles that moved more than skin/2
-("movers") are queried on their own against the class grids of the last
-search instead of forcing a full search; only when movers become common
-is the grid rebuilt. The result is exactly the set a fresh search would need.
+particles have together moved more than the skin since. The check uses the
+actual positions, so it covers every stage. The few fast particles that
+moved more than skin/2 ("movers") are queried on their own against the
+class grids of the last search; only when movers become common is the grid
+rebuilt. The result is exactly the set a fresh search would need.
+
+Memory is bounded by the step's budget (``STEP_MEMORY_BUDGET`` over
+``PAIR_BYTES`` per pair: ``MAX_PAIRS``). An allowance (a swept stage's
+|v| dt) much wider than the particles can make the sphere of reach hold
+far more pairs than can meet: then the particles are searched along their
+paths, keeping a pair only if their straight paths over the step come
+within their radii (plus what the allowance adds beyond |v| dt, the sag
+under gravity) at the same moment. A world whose pairs still do not fit is
+refused with ``StepTooLarge`` (a ``SceneError`` and a ``MemoryError``)
+that says how many pairs it would need and why: ``check_pair_budget`` does
+this at a request (scene load, spawn, accuracy), the stage at a step.
 """
 
 from __future__ import annotations
@@ -34,10 +37,12 @@ from typing import Optional
 import numpy as np
 
 from . import grid_kernels
-from .grid_kernels import Grid
+from .grid_kernels import Found, Grid, PathMotion, SearchLimit
 from ...step.pipeline import Stage, StepContext
+from ...model.validation import SceneError
 from ...model.tunables import (CLASS_RATIO, SKIN_STEPS, SKIN_MAX_RADII, SKIN_MIN_RADII,
-                               MAX_MOVER_SHARE, ALL_PAIRS_UP_TO)
+                               MAX_MOVER_SHARE, ALL_PAIRS_UP_TO, STEP_MEMORY_BUDGET, PAIR_BYTES,
+                               MAX_PATH_TESTS)
 
 # The pair test |p_i - p_j|^2 <= (reach_i + reach_j)^2 (1 + QUERY_SLACK) is a
 # little generous, so that rounding never drops a pair; the grid's cell
@@ -45,6 +50,42 @@ from ...model.tunables import (CLASS_RATIO, SKIN_STEPS, SKIN_MAX_RADII, SKIN_MIN
 QUERY_SLACK = grid_kernels.PAIR_SLACK
 
 _EMPTY = np.zeros(0, dtype=np.int64)
+
+# The most candidate pairs one search may hold: the step's memory budget.
+MAX_PAIRS = int(STEP_MEMORY_BUDGET // PAIR_BYTES)
+
+
+class StepTooLarge(SceneError, MemoryError):
+    """A world whose step would need more candidate pairs than the memory budget holds."""
+
+
+def _limit() -> SearchLimit:
+    """Return the bounds of one search (read here, so a test may lower ``MAX_PAIRS``)."""
+    return SearchLimit(int(MAX_PAIRS), int(MAX_PATH_TESTS))
+
+
+def _still() -> PathMotion:
+    """Return the ``PathMotion`` of a search of spheres only."""
+    return PathMotion(False, np.zeros((0, 3)), np.zeros(0), np.zeros(1, dtype=np.int64))
+
+
+def _too_large(found: Found, position: np.ndarray, reach: np.ndarray,
+               along_paths: bool) -> StepTooLarge:
+    """Return the refusal of a search that gave up, saying what it would need and why.
+
+    ``found`` is the sphere search's (its estimate of the pairs needed);
+    ``along_paths``: the search along paths gave up as well.
+    """
+    points = grid_kernels.as_points(position)
+    extent = float(np.max(points.max(axis=0) - points.min(axis=0)))
+    paths = ' (too many along their paths too)' if along_paths else ''
+    amount = 'about' if found.estimated else 'more than'
+    return StepTooLarge(
+        f'the contact search needs {amount} {max(found.needed, float(MAX_PAIRS)):.2g} '
+        f'candidate pairs{paths}, over the step memory budget of {MAX_PAIRS:.2g} '
+        f'(STEP_MEMORY_BUDGET): {len(reach)} particles reach {float(reach.max()):.2g} m '
+        f'(radius + travel per step) across {extent:.2g} m; use fewer, smaller or slower '
+        'particles or a shorter dt')
 
 
 @dataclass
@@ -82,15 +123,36 @@ def size_classes(reach: np.ndarray) -> list[np.ndarray]:
     return np.split(order, bounds)
 
 
+def _search(position: np.ndarray, reach: np.ndarray,
+            paths: Optional[tuple[np.ndarray, np.ndarray]] = None) -> tuple[Found, Grid]:
+    """Search the pairs within reach (and, with ``paths``, whose paths meet); may give up.
+
+    ``paths`` is (shift, path reach) per particle: its displacement over
+    the step and its reach about that straight path.
+    """
+    reach = np.ascontiguousarray(reach, dtype=np.float64)
+    grid = grid_kernels.make_grid(position, reach, size_classes(reach))
+    motion = _still()
+    if paths is not None:
+        shift, path_reach = paths
+        motion = PathMotion(True, grid_kernels.as_points(shift)[grid.item],
+                            np.ascontiguousarray(path_reach, dtype=np.float64)[grid.item],
+                            np.zeros(1, dtype=np.int64))
+    return grid_kernels.grid_pairs(reach, grid, _limit(), motion), grid
+
+
 def search_pairs(position: np.ndarray, reach: np.ndarray) -> PairSearch:
-    """Search all pairs with |p_i - p_j| <= reach_i + reach_j, exactly those."""
+    """Search all pairs with |p_i - p_j| <= reach_i + reach_j, exactly those.
+
+    Raises ``StepTooLarge`` when they would be more than ``MAX_PAIRS``.
+    """
     n = position.shape[0]
     if n < 2:
         return PairSearch(_EMPTY, _EMPTY, None)
-    reach = np.ascontiguousarray(reach, dtype=np.float64)
-    grid = grid_kernels.make_grid(position, reach, size_classes(reach))
-    pairs = grid_kernels.grid_pairs(reach, grid)
-    return PairSearch(pairs.first, pairs.second, grid)
+    found, grid = _search(position, reach)
+    if not found.complete:
+        raise _too_large(found, position, reach, False)
+    return PairSearch(found.pairs.first, found.pairs.second, grid)
 
 
 def candidate_pairs(position: np.ndarray, reach: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -100,10 +162,65 @@ def candidate_pairs(position: np.ndarray, reach: np.ndarray) -> tuple[np.ndarray
     distance it may travel in a step). Pairs come sorted by (i, j) so that
     every later stage sees them in a deterministic order. The set is exact
     up to a relative slack of 1e-9 on the reach (and offsets whose squares
-    underflow); the narrowphase keeps the real contacts.
+    underflow); the narrowphase keeps the real contacts. Raises
+    ``StepTooLarge`` when they would be more than ``MAX_PAIRS``.
     """
     search = search_pairs(position, reach)
     return search.i, search.j
+
+
+def swept_pairs(position: np.ndarray, radius: np.ndarray, extra: np.ndarray,
+                velocity: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Return the pairs within r + extra of each other, or along paths when they are too many.
+
+    The sphere search (``candidate_pairs`` with reach radius + extra) first;
+    if it would hold more than ``MAX_PAIRS``, the pairs whose straight paths
+    (velocity * dt) come within radius + (extra - |v| dt) of each other at
+    one moment: a subset, those that can meet in the step. Raises
+    ``StepTooLarge`` when even those are too many (or too costly to find).
+    """
+    n = position.shape[0]
+    if n < 2:
+        return _EMPTY, _EMPTY
+    reach = radius + extra
+    found, _ = _search(position, reach)
+    if found.complete:
+        return found.pairs.first, found.pairs.second
+    if not np.any(extra > 0.0):
+        raise _too_large(found, position, reach, False)
+    travel = np.sqrt(np.einsum('ij,ij->i', velocity, velocity)) * dt
+    path_reach = radius + np.maximum(extra - travel, 0.0)
+    along, _ = _search(position, reach, (velocity * dt, path_reach))
+    if not along.complete:
+        raise _too_large(found, position, reach, True)
+    return along.pairs.first, along.pairs.second
+
+
+def swept_allowance(velocity: np.ndarray, dynamic: np.ndarray, dt: float,
+                    gravity: Optional[np.ndarray]) -> np.ndarray:
+    """Return how far each particle may travel in a step of ``dt``: |v| dt (+ |g| dt^2 / 2)."""
+    travel = np.sqrt(np.einsum('ij,ij->i', velocity, velocity)) * dt
+    if gravity is not None:
+        sag = float(np.linalg.norm(gravity))
+        travel = travel + np.where(dynamic, 0.5 * sag * dt * dt, 0.0)
+    return travel
+
+
+def check_pair_budget(position: np.ndarray, radius: np.ndarray, velocity: np.ndarray,
+                      inv_mass: np.ndarray, dt: float, extra: Optional[np.ndarray],
+                      added: Optional[int] = None) -> None:
+    """Raise ``StepTooLarge`` if a step's broadphase would need more than ``MAX_PAIRS``.
+
+    Runs the search a first step would make (a fresh ``BroadphaseStage``
+    with the allowance ``extra``, None for discrete detection) and keeps
+    nothing. Free when every pair of the world fits the budget anyway, or
+    when the last ``added`` particles (a spawn into a world checked before)
+    can add at most half the budget's pairs.
+    """
+    n = position.shape[0]
+    if n * (n - 1) // 2 <= MAX_PAIRS or (added is not None and added * n <= MAX_PAIRS // 2):
+        return
+    BroadphaseStage().find(position, radius, velocity, inv_mass, dt, extra)
 
 
 def _upper_median(values: np.ndarray) -> float:
@@ -155,6 +272,9 @@ class BroadphaseStage(Stage):
         like a displacement: a particle whose displacement since the search
         plus e exceeds skin/2 is a mover, and movers are queried with their
         allowance, so the list stays exactly what a fresh search would need.
+        Where those pairs would be more than ``MAX_PAIRS``, the movers' are
+        those whose straight paths meet (``swept_pairs``); ``StepTooLarge``
+        where even those are too many.
         """
         n = position.shape[0]
         if n <= ALL_PAIRS_UP_TO:
@@ -168,7 +288,7 @@ class BroadphaseStage(Stage):
             # Allowances outgrew the skin last step: search directly until
             # they fit again, instead of rebuilding a list nobody can reuse.
             if np.count_nonzero(extra > self._half_skin) > MAX_MOVER_SHARE * n:
-                return candidate_pairs(position, radius + extra)
+                return swept_pairs(position, radius, extra, velocity, dt)
             self._direct = False
             self._built_position = None
         if not self._list_matches(position, radius):
@@ -179,11 +299,15 @@ class BroadphaseStage(Stage):
             movers = self._movers(position, extra)
             if movers.size > MAX_MOVER_SHARE * n:
                 self._direct = True
-                return candidate_pairs(position, radius + extra)
+                return swept_pairs(position, radius, extra, velocity, dt)
         if movers.size == 0:
             return self._search.i, self._search.j
         self.mover_updates += 1
-        return self._with_mover_pairs(position, radius, movers, extra)
+        pairs = self._with_mover_pairs(position, radius, movers, extra)
+        if pairs is None:
+            # The movers' reach holds too many pairs: search along their paths.
+            return swept_pairs(position, radius, extra, velocity, dt)
+        return pairs
 
     def _movers(self, position: np.ndarray, extra: np.ndarray) -> np.ndarray:
         """Return the particles whose displacement plus allowance exceeds skin/2."""
@@ -221,22 +345,30 @@ class BroadphaseStage(Stage):
 
     def _with_mover_pairs(self, position: np.ndarray, radius: np.ndarray,
                           movers: np.ndarray, extra: np.ndarray
-                          ) -> tuple[np.ndarray, np.ndarray]:
-        """Return the listed pairs plus every pair a mover may now overlap (i < j, sorted)."""
+                          ) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        """Return the listed pairs plus every pair a mover may now overlap (i < j, sorted).
+
+        Returns None when the movers' pairs would be more than ``MAX_PAIRS``.
+        """
         n = position.shape[0]
         mover_reach = radius[movers] + extra[movers] + self._half_skin
         # A mover against a particle that moved <= skin/2: that particle's
         # listed position is within r_i + r_j + skin/2 of the mover now.
         # With an allowance e_j <= skin/2 - displacement_j for non-movers,
         # the same bound holds with the mover's own e added.
-        near = grid_kernels.grid_query(grid_kernels.as_points(position), movers, mover_reach,
-                                       self._partners, self._search.grid)
+        found = grid_kernels.grid_query(grid_kernels.as_points(position), movers, mover_reach,
+                                        self._partners, self._search.grid, _limit())
+        if not found.complete:
+            return None
+        near = found.pairs
         # Movers against movers, at their current positions (all pairs if few).
         if movers.size <= ALL_PAIRS_UP_TO:
             between_i, between_j = np.triu_indices(movers.size, k=1)
         else:
-            between = search_pairs(position[movers], radius[movers] + extra[movers])
-            between_i, between_j = between.i, between.j
+            between, _ = _search(position[movers], radius[movers] + extra[movers])
+            if not between.complete:
+                return None
+            between_i, between_j = between.pairs.first, between.pairs.second
         listed = grid_kernels.Pairs(self._search.i, self._search.j)
         extra_pairs = grid_kernels.Pairs(np.concatenate([near.first, movers[between_i]]),
                                          np.concatenate([near.second, movers[between_j]]))

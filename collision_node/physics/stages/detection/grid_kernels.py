@@ -29,6 +29,12 @@ Cell indices are measured from the lowest corner of all particles and a
 cell is never narrower than the scene's extent / 2^40, so they fit in
 64-bit integers at any scale. A query box with more cells than the class
 has particles (a very fast mover) scans the class's particles directly.
+
+Every search is bounded (``SearchLimit``): its buffers never grow past
+the most pairs the step's memory budget allows, and a search along paths
+(``PathMotion``: fast movers kept only if their straight paths meet)
+makes a bounded number of tests. Over a bound a search gives up and
+returns an estimate of what it would need (``Found``).
 """
 
 from __future__ import annotations
@@ -43,7 +49,7 @@ from ...law.primitives import dot3
 
 from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
 from ...model.tunables import (PAIR_SLACK, SCAN_SLACK, MAX_CELLS_PER_AXIS, CELL_REACHES,
-                               DENSE_CELLS_PER_ITEM, CELL_MARGIN, DENSE_AXIS_CELLS)
+                               DENSE_CELLS_PER_ITEM, CELL_MARGIN, DENSE_AXIS_CELLS, PATH_SLACK)
 
 # Multipliers of the cell hash (large odd constants: neighbouring cells
 # land in unrelated buckets).
@@ -190,6 +196,81 @@ def _near(ax, ay, az, bx, by, bz, limit):
     return dot3(ox, oy, oz, ox, oy, oz) <= limit * limit * (1.0 + PAIR_SLACK)
 
 
+class SearchLimit(NamedTuple):
+    """How much one search may hold and do before it gives up (see ``Found``)."""
+
+    max_pairs: int              # pairs kept at most (their buffers never grow past it)
+    max_tests: int              # pair tests at most, in a search along paths
+
+
+class PathMotion(NamedTuple):
+    """Straight paths over the step, for a search along paths (``active``; else unused).
+
+    A pair is kept only if the two particles, each moving by its ``shift``
+    over the step, come within their path reaches of each other at the same
+    moment (the sphere test of their whole reach must pass as well).
+    """
+
+    active: bool
+    shift: np.ndarray           # (n, 3) each item's displacement over the step (v dt), m
+    reach: np.ndarray           # (n,) each item's reach about its path, m
+    tested: np.ndarray          # (1,) int64: pair tests made so far
+
+
+class Probe(NamedTuple):
+    """One particle's search of one class: the box and the test's own terms."""
+
+    point: tuple                # (x, y, z) of the particle, m
+    search: float               # half width of the box searched, m
+    particle: int               # its index
+    after: int                  # only items after this one (-1: all)
+    own_reach: float            # its reach in the sphere test, m
+    shift: tuple                # its displacement over the step (path search), m
+    path_reach: float           # its reach about its path (path search), m
+
+
+class Found(NamedTuple):
+    """A search's result: its pairs, or how many it would need when it gave up."""
+
+    pairs: Pairs                # the pairs (empty when not ``complete``)
+    complete: bool              # False: over ``SearchLimit``, pairs left out
+    needed: float               # pairs found; when given up, a lower bound or an estimate
+    estimated: bool             # ``needed`` extrapolated to the whole search
+    tested: int                 # pair tests made along paths
+
+
+@njit(cache=True, inline='always')
+def _paths_meet(probe, t, item_position, motion):
+    """Return whether the probe and item t come within their path reaches at one moment.
+
+    Relative motion over the step is d + s u, s in [0, 1] (d the offset, u
+    the difference of the shifts); its closest approach is at s* = -d.u / u.u
+    clipped to [0, 1]. The limit gets a slack of PATH_SLACK |u| for rounding.
+    """
+    motion.tested[0] += 1
+    x, y, z = probe.point
+    dx, dy, dz = x - item_position[t, 0], y - item_position[t, 1], z - item_position[t, 2]
+    sx, sy, sz = probe.shift
+    ux, uy, uz = sx - motion.shift[t, 0], sy - motion.shift[t, 1], sz - motion.shift[t, 2]
+    uu = dot3(ux, uy, uz, ux, uy, uz)
+    s = 0.0
+    if uu > 0.0:
+        s = min(max(-dot3(dx, dy, dz, ux, uy, uz) / uu, 0.0), 1.0)
+    cx, cy, cz = dx + s * ux, dy + s * uy, dz + s * uz
+    limit = probe.path_reach + motion.reach[t] + PATH_SLACK * math.sqrt(uu)
+    return dot3(cx, cy, cz, cx, cy, cz) <= limit * limit * (1.0 + PAIR_SLACK)
+
+
+@njit(cache=True, inline='always')
+def _keep(probe, t, item_position, limit, motion):
+    """Return whether item t passes the sphere test (and, searching paths, the path test)."""
+    x, y, z = probe.point
+    if not _near(x, y, z, item_position[t, 0], item_position[t, 1], item_position[t, 2],
+                 limit):
+        return False
+    return not motion.active or _paths_meet(probe, t, item_position, motion)
+
+
 @njit(cache=True, inline='always')
 def _cell_range(value, search, corner, cell, low, high):
     """Return the first and last cell index (clipped to low..high) within value +- search."""
@@ -199,17 +280,19 @@ def _cell_range(value, search, corner, cell, low, high):
 
 
 @njit(cache=True, inline='always')
-def _scan_class(grid, k, point, search, query, after, own_reach, partner, out_a, out_b, count):
-    """Write (query, j) for every item j of class k near ``point``; return the new count.
+def _scan_class(grid, k, probe, partner, motion, out_a, out_b, count):
+    """Write (particle, j) for every item j of class k the probe keeps; return the new count.
 
-    The box searched is ``search`` around the point (x, y, z); each
-    candidate (item t, particle j) is kept when |point - p_j| is within
-    own_reach + partner[t] (``partner`` in item order); only items t >
-    ``after`` are taken (a class searched against itself from item
-    ``after``: each pair once). Pairs beyond the buffers' size are counted,
-    not written: the caller grows the buffers and searches again.
+    The box searched is ``probe.search`` around its point; each candidate
+    (item t, particle j) is kept when |point - p_j| is within own_reach +
+    partner[t] (``partner`` in item order) and, with ``motion`` active,
+    their paths meet (``_paths_meet``); only items t > ``probe.after`` are
+    taken (a class searched against itself: each pair once). Pairs beyond
+    the buffers' size are counted, not written: the caller grows the
+    buffers and searches again.
     """
-    x, y, z = point
+    x, y, z = probe.point
+    search, query, own_reach = probe.search, probe.particle, probe.own_reach
     item, item_cell, item_position = grid.item, grid.item_cell, grid.item_position
     bucket, low, high = grid.bucket, grid.low, grid.high
     width = grid.cell[k]
@@ -219,12 +302,11 @@ def _scan_class(grid, k, point, search, query, after, own_reach, partner, out_a,
     if ax > bx or ay > by or az > bz:
         return count
     capacity = out_a.size
-    start, stop = max(grid.class_start[k], after + 1), grid.class_start[k + 1]
+    start, stop = max(grid.class_start[k], probe.after + 1), grid.class_start[k + 1]
     if (bx - ax + 1.0) * (by - ay + 1.0) * (bz - az + 1.0) > stop - start:
         # A box with more cells than there are particles to test: test them all.
         for t in range(start, stop):
-            if _near(x, y, z, item_position[t, 0], item_position[t, 1], item_position[t, 2],
-                     own_reach + partner[t]):
+            if _keep(probe, t, item_position, own_reach + partner[t], motion):
                 if count < capacity:
                     out_a[count], out_b[count] = query, item[t]
                 count += 1
@@ -242,8 +324,7 @@ def _scan_class(grid, k, point, search, query, after, own_reach, partner, out_a,
             for cy in range(np.int64(ay), np.int64(by) + 1):
                 row = base + _dense_bucket(0, cy, cz, lx, ly, lz, nx, ny)
                 for t in range(max(bucket[row + first], start), bucket[row + last + 1]):
-                    if _near(x, y, z, item_position[t, 0], item_position[t, 1],
-                             item_position[t, 2], own_reach + partner[t]):
+                    if _keep(probe, t, item_position, own_reach + partner[t], motion):
                         if count < capacity:
                             out_a[count], out_b[count] = query, item[t]
                         count += 1
@@ -255,8 +336,7 @@ def _scan_class(grid, k, point, search, query, after, own_reach, partner, out_a,
                 for t in range(max(bucket[b], start), bucket[b + 1]):
                     if item_cell[t, 0] != cx or item_cell[t, 1] != cy or item_cell[t, 2] != cz:
                         continue
-                    if _near(x, y, z, item_position[t, 0], item_position[t, 1],
-                             item_position[t, 2], own_reach + partner[t]):
+                    if _keep(probe, t, item_position, own_reach + partner[t], motion):
                         if count < capacity:
                             out_a[count], out_b[count] = query, item[t]
                         count += 1
@@ -304,6 +384,13 @@ def sort_pairs(a, b, count, n):
     return Pairs(first, second)
 
 
+@njit(cache=True)
+def _given_up(needed, estimated, tested):
+    """Return the ``Found`` of a search over its limit: no pairs, what it would need."""
+    none = np.zeros(0, dtype=np.int64)
+    return Found(Pairs(none, none.copy()), False, needed, estimated, tested)
+
+
 @njit(cache=True, inline='always')
 def _append_near(first, stop, point, own_reach, query, item, item_position, partner, out_a,
                  out_b, count):
@@ -325,16 +412,17 @@ def _append_near(first, stop, point, own_reach, query, item, item_position, part
 
 @njit(cache=True)
 def _dense_pairs(grid, item_reach, out_a, out_b):
-    """Write the unsorted pairs of a grid of one dense class; return their count.
+    """Write the unsorted pairs of a grid of one dense class; return (count, items done).
 
-    Returns -1 when ``out_a`` / ``out_b`` may be too short (the caller
-    grows them and calls again): growing them here would make numba count
-    references to the buffers at every candidate, which doubles the cost.
-    Cells are wider than any search (CELL_MARGIN), so the items t > m of
-    the neighbour cells of item m's cell are exactly those of five rows of
-    cells along x: its own (from m on) and the next four in cell order (the
-    half of the 3 x 3 rows around it that comes later), each one range of
-    items. The exact test is ``_near``'s, so the set is ``_scan_class``'s.
+    Stops early, with fewer than all items done, when ``out_a`` / ``out_b``
+    may be too short (the caller grows them and calls again): growing them
+    here would make numba count references to the buffers at every
+    candidate, which doubles the cost. Cells are wider than any search
+    (CELL_MARGIN), so the items t > m of the neighbour cells of item m's
+    cell are exactly those of five rows of cells along x: its own (from m
+    on) and the next four in cell order (the half of the 3 x 3 rows around
+    it that comes later), each one range of items. The exact test is
+    ``_near``'s, so the set is ``_scan_class``'s.
     """
     item, item_cell, item_position = grid.item, grid.item_cell, grid.item_position
     low, high, bucket = grid.low, grid.high, grid.bucket
@@ -359,10 +447,10 @@ def _dense_pairs(grid, item_reach, out_a, out_b):
             first = m + 1 if r == 0 else bucket[row + first_cell]
             stop = bucket[row + last_cell + 1]
             if count + (stop - first) > capacity:
-                return -1
+                return count, m
             count = _append_near(first, stop, point, own_reach, query, item, item_position,
                                  item_reach, out_a, out_b, count)
-    return count
+    return count, n
 
 
 @njit(cache=True)
@@ -375,57 +463,105 @@ def _items_reach(reach, item):
 
 
 @njit(cache=True)
-def _dense_grid_pairs(reach, grid):
-    """Return ``grid_pairs`` of a grid of one dense class (sorted by (i, j))."""
-    n = grid.item.size
-    item_reach = _items_reach(reach, grid.item)
-    size = 4 * n + 64
-    while True:
-        out_a, out_b = np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64)
-        count = _dense_pairs(grid, item_reach, out_a, out_b)
-        if count >= 0:
-            return sort_pairs(out_a, out_b, count, n)
-        size *= 4
+def _dense_candidates(grid, items):
+    """Return how many candidates ``_dense_pairs`` writes for its first ``items`` items."""
+    item_cell, low, high, bucket = grid.item_cell, grid.low, grid.high, grid.bucket
+    lx, ly, lz = low[0, 0], low[0, 1], low[0, 2]
+    nx, ny, nz = high[0, 0] - lx + 1, high[0, 1] - ly + 1, high[0, 2] - lz + 1
+    base = grid.table_start[0]
+    total = 0.0
+    for m in range(items):
+        cx, cy, cz = item_cell[m, 0] - lx, item_cell[m, 1] - ly, item_cell[m, 2] - lz
+        first_cell, last_cell = max(cx - 1, 0), min(cx + 1, nx - 1)
+        for r in range(5):
+            ry, rz = (cy + r, cz) if r < 2 else (cy + r - 3, cz + 1)
+            if ry < 0 or ry >= ny or rz >= nz:
+                continue
+            row = base + (rz * ny + ry) * nx
+            first = m + 1 if r == 0 else bucket[row + first_cell]
+            total += bucket[row + last_cell + 1] - first
+    return total
 
 
 @njit(cache=True, nogil=True)
-def grid_pairs(reach, grid):
-    """Return the ``Pairs`` (i < j, sorted) with |p_i - p_j| <= reach_i + reach_j (and slack).
+def _dense_grid_pairs(reach, grid, limit):
+    """Return the ``Found`` of ``grid_pairs`` on a grid of one dense class (sorted by (i, j)).
+
+    The buffers grow fourfold while they are too short, up to the limit's
+    pairs plus one item's candidates; past that the search gives up, with
+    an estimate of the pairs it would find: all its candidates (counted
+    from the table), times the share of them kept so far.
+    """
+    n = grid.item.size
+    item_reach = _items_reach(reach, grid.item)
+    largest = limit.max_pairs + n
+    size = min(4 * n + 64, largest)
+    while True:
+        out_a, out_b = np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64)
+        count, done = _dense_pairs(grid, item_reach, out_a, out_b)
+        if done == n and count <= limit.max_pairs:
+            return Found(sort_pairs(out_a, out_b, count, n), True, float(count), False, 0)
+        if done == n:
+            return _given_up(float(count), False, 0)
+        if size >= largest:
+            share = count / max(_dense_candidates(grid, done), 1.0)
+            return _given_up(max(share * _dense_candidates(grid, n), float(count)), True, 0)
+        size = min(4 * size, largest)
+
+
+@njit(cache=True)
+def grid_pairs(reach, grid, limit, motion):
+    """Return the ``Found`` pairs (i < j, sorted) with |p_i - p_j| <= reach_i + reach_j (+ slack).
 
     Positions are the grid's (as built). Each particle is searched in its
     own class (each pair once, from its earlier item) and in every larger
-    class.
+    class. With ``motion`` active a pair must also pass the path test
+    (``motion`` in item order). Past ``limit`` the search gives up.
     """
     item_position, class_start, class_reach = grid.item_position, grid.class_start, \
         grid.class_reach
     n = grid.item.size
-    if class_start.size == 2 and grid.dense[0] and grid.cell[0] >= CELL_REACHES * \
-            class_reach[0] * (1.0 + CELL_MARGIN) and \
+    if not motion.active and class_start.size == 2 and grid.dense[0] and \
+            grid.cell[0] >= CELL_REACHES * class_reach[0] * (1.0 + CELL_MARGIN) and \
             np.max(grid.high[0] - grid.low[0]) < DENSE_AXIS_CELLS:
         # One dense class (a gas): the neighbour-cell scan, no search boxes.
-        return _dense_grid_pairs(reach, grid)
+        return _dense_grid_pairs(reach, grid, limit)
     item_reach = _items_reach(reach, grid.item)
-    out_a, out_b = np.empty(2 * n + 16, dtype=np.int64), np.empty(2 * n + 16, dtype=np.int64)
+    size = min(2 * n + 16, limit.max_pairs)
+    out_a, out_b = np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64)
     count = 0
     classes = class_start.size - 1
+    no_shift = (0.0, 0.0, 0.0)
     for k in range(classes):
         # Items in cell order: neighbouring queries touch the same memory.
         for m in range(class_start[k], class_start[k + 1]):
             particle = grid.item[m]
             point = (item_position[m, 0], item_position[m, 1], item_position[m, 2])
             own_reach = reach[particle]
+            shift, path_reach = no_shift, 0.0
+            if motion.active:
+                shift = (motion.shift[m, 0], motion.shift[m, 1], motion.shift[m, 2])
+                path_reach = motion.reach[m]
+                if motion.tested[0] > limit.max_tests:
+                    return _given_up(float(count), False, motion.tested[0])
             for other in range(k, classes):
                 search = (own_reach + class_reach[other]) * (1.0 + SCAN_SLACK)
-                after = m if other == k else -1
+                probe = Probe(point, search, particle, m if other == k else -1, own_reach,
+                              shift, path_reach)
                 before = count
-                count = _scan_class(grid, other, point, search, particle, after, own_reach,
-                                    item_reach, out_a, out_b, count)
+                count = _scan_class(grid, other, probe, item_reach, motion, out_a, out_b, count)
                 if count > out_a.size:
-                    out_a = _grown(out_a, before, 2 * count)
-                    out_b = _grown(out_b, before, 2 * count)
-                    count = _scan_class(grid, other, point, search, particle, after, own_reach,
-                                        item_reach, out_a, out_b, before)
-    return sort_pairs(out_a, out_b, count, n)
+                    if count > limit.max_pairs:
+                        return _given_up(float(count), False, motion.tested[0])
+                    size = min(2 * count, limit.max_pairs)
+                    out_a = _grown(out_a, before, size)
+                    out_b = _grown(out_b, before, size)
+                    if motion.active:
+                        motion.tested[0] -= count - before     # the same tests again
+                    count = _scan_class(grid, other, probe, item_reach, motion, out_a, out_b,
+                                        before)
+    return Found(sort_pairs(out_a, out_b, count, n), True, float(count), False,
+                 motion.tested[0])
 
 
 class Partners(NamedTuple):
@@ -436,16 +572,18 @@ class Partners(NamedTuple):
 
 
 @njit(cache=True, nogil=True)
-def grid_query(position, query, query_reach, partners, grid):
-    """Return ``Pairs`` (a, b): each query particle a = query[q] against every item b near it.
+def grid_query(position, query, query_reach, partners, grid, limit):
+    """Return the ``Found`` (a, b): each query particle a = query[q] against every item b near it.
 
     Near: |position[a] - p_b| <= query_reach[q] + partners.item_reach[t]
     (p_b the grid's position of b, item t). Pairs come in query order,
-    unsorted, a == b included.
+    unsorted, a == b included. Past ``limit.max_pairs`` the query gives up.
     """
-    out_a = np.empty(16 * query.size + 16, dtype=np.int64)
-    out_b = np.empty(16 * query.size + 16, dtype=np.int64)
+    size = min(16 * query.size + 16, limit.max_pairs)
+    out_a, out_b = np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64)
     partner, class_partner = partners.item_reach, partners.class_reach
+    motion = PathMotion(False, np.zeros((0, 3)), np.zeros(0), np.zeros(1, dtype=np.int64))
+    no_shift = (0.0, 0.0, 0.0)
     count = 0
     for q in range(query.size):
         particle = query[q]
@@ -453,15 +591,17 @@ def grid_query(position, query, query_reach, partners, grid):
         own_reach = query_reach[q]
         for k in range(grid.class_start.size - 1):
             search = (own_reach + class_partner[k]) * (1.0 + SCAN_SLACK)
+            probe = Probe(point, search, particle, -1, own_reach, no_shift, 0.0)
             before = count
-            count = _scan_class(grid, k, point, search, particle, -1, own_reach, partner,
-                                out_a, out_b, count)
+            count = _scan_class(grid, k, probe, partner, motion, out_a, out_b, count)
             if count > out_a.size:
-                out_a = _grown(out_a, before, 2 * count)
-                out_b = _grown(out_b, before, 2 * count)
-                count = _scan_class(grid, k, point, search, particle, -1, own_reach, partner,
-                                    out_a, out_b, before)
-    return Pairs(out_a[:count], out_b[:count])
+                if count > limit.max_pairs:
+                    return _given_up(float(count), False, 0)
+                size = min(2 * count, limit.max_pairs)
+                out_a = _grown(out_a, before, size)
+                out_b = _grown(out_b, before, size)
+                count = _scan_class(grid, k, probe, partner, motion, out_a, out_b, before)
+    return Found(Pairs(out_a[:count], out_b[:count]), True, float(count), False, 0)
 
 
 def partner_terms(values: np.ndarray, grid: Grid) -> Partners:
@@ -546,12 +686,18 @@ def warm_up() -> None:
     """Call every kernel once on a tiny problem (compiles or loads from the cache)."""
     position = np.array([[0.0, 0.0, 0.0], [1.5, 0.0, 0.0], [9.0, 0.0, 0.0]])
     reach = np.array([1.0, 1.0, 3.0])
+    limit = SearchLimit(1000, 1000)
     grid = make_grid(position, reach, [np.array([0, 1]), np.array([2])])
-    grid_pairs(reach, grid)
+    still = PathMotion(False, np.zeros((0, 3)), np.zeros(0), np.zeros(1, dtype=np.int64))
+    grid_pairs(reach, grid, limit, still)
+    moving = PathMotion(True, np.ones((3, 3)), np.ones(3), np.zeros(1, dtype=np.int64))
+    grid_pairs(reach, grid, limit, moving)
+    gas = make_grid(position[:2], reach[:2], [np.array([0, 1])])
+    grid_pairs(reach[:2], gas, limit, still)
     query = np.array([0], dtype=np.int64)
-    near = grid_query(position, query, reach[query], partner_terms(reach, grid), grid)
+    near = grid_query(position, query, reach[query], partner_terms(reach, grid), grid, limit)
     keys = np.array([1], dtype=np.int64)
-    merge_pairs(keys, Pairs(keys // 3, keys % 3), near, 3)
+    merge_pairs(keys, Pairs(keys // 3, keys % 3), near.pairs, 3)
     movers(position, position, np.zeros(3), 0.5)
 
 
