@@ -483,7 +483,7 @@ def _dense_candidates(grid, items):
     return total
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _dense_grid_pairs(reach, grid, limit):
     """Return the ``Found`` of ``grid_pairs`` on a grid of one dense class (sorted by (i, j)).
 
@@ -509,7 +509,7 @@ def _dense_grid_pairs(reach, grid, limit):
         size = min(4 * size, largest)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def grid_pairs(reach, grid, limit, motion):
     """Return the ``Found`` pairs (i < j, sorted) with |p_i - p_j| <= reach_i + reach_j (+ slack).
 
