@@ -19,11 +19,11 @@ import numpy as np
 
 from collision_node.physics.model.accuracy import (AccuracySettings, check_event_mode,
                                                    EVENT_FALLBACK, MIN_EVENT_BUDGET, PRESETS)
-from collision_node.physics.law.contact_law import (apply_pair_impulses, apply_wall_impulses,
-                                                    pair_coefficient, record_pairs, record_walls,
-                                                    thresholded, wall_coefficient)
+from oracles.contact_law import (apply_pair_impulses, apply_wall_impulses,
+                                 pair_coefficient, record_pairs, record_walls,
+                                 thresholded, wall_coefficient)
 from collision_node.physics.model.effects import Effects
-from collision_node.physics.law.paths import entering_time
+from oracles.paths import entering_time
 from collision_node.physics.step.pipeline import Pipeline, Stage, StepContext
 from collision_node.physics.model.state import ParticleState
 from collision_node.physics.model.tunables import MAX_FALLBACK_HOLD, PARTICLES_PER_CELL

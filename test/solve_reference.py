@@ -16,11 +16,11 @@ from typing import Optional
 
 import numpy as np
 
-from collision_node.physics.law.contact_law import (apply_impulses, apply_pair_friction,
-                                                    apply_pair_impulses, apply_wall_friction,
-                                                    apply_wall_impulses, pair_coefficient,
-                                                    reflect_on_plane, wall_coefficient)
-from collision_node.physics.law.impulse import closing_speed
+from oracles.contact_law import (apply_impulses, apply_pair_friction,
+                                 apply_pair_impulses, apply_wall_friction,
+                                 apply_wall_impulses, pair_coefficient,
+                                 reflect_on_plane, wall_coefficient)
+from oracles.impulse import closing_speed
 from collision_node.physics.model.impacts import record_pairs, record_walls
 from collision_node.physics.model.tunables import (RESIDUAL_FRACTION, SHOCK_PASSES,
                                                    STRIKE_FACTOR, WALL_SLOP, WALL_ULPS)

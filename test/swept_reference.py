@@ -13,11 +13,11 @@ from typing import Optional
 
 import numpy as np
 
-from collision_node.physics.law.contact_law import (apply_pair_friction, apply_pair_impulses,
-                                                    apply_wall_friction, apply_wall_impulses,
-                                                    pair_coefficient, record_pairs,
-                                                    record_walls, thresholded, wall_coefficient)
-from collision_node.physics.law.paths import entering_time, parabola_sphere_time
+from oracles.contact_law import (apply_pair_friction, apply_pair_impulses,
+                                 apply_wall_friction, apply_wall_impulses,
+                                 pair_coefficient, record_pairs,
+                                 record_walls, thresholded, wall_coefficient)
+from oracles.paths import entering_time, parabola_sphere_time
 from collision_node.physics.model.effects import Walls
 from collision_node.physics.stages.detection.narrowphase import line_of_action
 from collision_node.physics.stages.motion.drag import advance_with_drag

@@ -23,7 +23,7 @@ from collision_node.physics.law import coloring
 from collision_node.physics.law import primitives
 from collision_node.physics.model.accuracy import PRESETS
 from collision_node.physics.law.coloring import color_pairs
-from collision_node.physics.law.contact_law import apply_pair_friction, apply_pair_impulses
+from oracles.contact_law import apply_pair_friction, apply_pair_impulses
 from collision_node.physics.model.scene import load_scene
 from collision_node.physics.model.accuracy import parse_accuracy
 from collision_node.physics.stages.solve.batched_impulses import BatchedImpulseStage
@@ -242,7 +242,7 @@ def test_the_cache_folder_follows_every_physics_source(tmp_path):
     before = k.sources_digest(str(copy))
     assert before == k.sources_digest(k.PHYSICS_ROOT)
     assert os.path.basename(k.CACHE_DIR) == f'numba-{before}'
-    law = copy / 'law' / 'contact_law.py'
+    law = copy / 'law' / 'primitives.py'
     law.write_text(law.read_text() + '\n# changed\n')
     assert k.sources_digest(str(copy)) != before
 

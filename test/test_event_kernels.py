@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from collision_node.physics.stages.events import event_kernels as ek
+from collision_node.physics.law import primitives
 from collision_node.physics.model.scene import parse_scene
 from collision_node.physics.step.world import World
 from event_reference import PythonEventStage
@@ -288,7 +289,7 @@ def test_a_crowded_particle_refreshes_and_misses_no_impact():
     (1.0, -2.0, 0.0), (1.0, 2.0, 0.0), (1.0, 0.5, -9.81), (1.0, -0.5, 9.81), (1.0, -3.0, 9.81),
     (0.0, -1.0, 0.0), (0.0, 0.0, -1.0), (-1e-9, 1.0, 0.0), (math.inf, -1.0, -9.81),
     (1e-300, -1e-300, 0.0)])
-def test_entering_time_is_the_paths_module_s(gap, rate, curvature):
-    from collision_node.physics.law.paths import entering_time
+def test_the_compiled_entering_time_is_the_oracle_s(gap, rate, curvature):
+    from oracles.paths import entering_time
     expected = entering_time(np.array([gap]), np.array([rate]), np.array([curvature]))[0]
-    assert ek.entering(gap, rate, curvature) == expected
+    assert primitives.entering_time(gap, rate, curvature) == expected

@@ -19,6 +19,7 @@ from ..step import numba_cache  # noqa: F401,I100 (chooses numba's cache directo
 from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
 
 from ..model.energy import SPIN_FACTOR, STICK_FACTOR  # noqa: E402
+from ..model.tunables import BISECTIONS  # noqa: E402
 
 # Rows of the per-particle loss array the solve returns.
 RESTITUTION, WALLS, FRICTION = 0, 1, 2
@@ -372,6 +373,121 @@ def apply_wall_normal(v, inv_mass, p, axis, inward, e, approach):
     v[p, axis] += inward * change
     magnitude = change / inv_mass[p]
     return magnitude, 0.5 * magnitude * approach * (1.0 - e)
+
+
+@njit(cache=True, error_model='numpy', inline='always')
+def sphere_contact_time(ox, oy, oz, cx, cy, cz, dx, dy, dz, rx, ry, rz):
+    """Smaller root s >= 0 of |o + c s| = 1: inf for none, 0 for an overlapping pair that closes.
+
+    ``o``, ``c``: the offset and relative velocity in units of the contact
+    distance (a straight relative path); ``d``, ``r``: the same unscaled, for
+    the scale-robust line of action that decides a grazing pair whose dot
+    product underflowed.
+    """
+    half_b = dot3(ox, oy, oz, cx, cy, cz)
+    c = dot3(ox, oy, oz, ox, oy, oz) - 1.0
+    u2 = dot3(cx, cy, cz, cx, cy, cz)
+    disc = half_b * half_b - u2 * c
+    approaching = half_b < 0.0
+    overlapping = c <= 0.0
+    if overlapping and half_b == 0.0:
+        nx, ny, nz, _ = line_of_action(dx, dy, dz, rx, ry, rz)
+        approaching = dot3(nx, ny, nz, rx, ry, rz) < 0.0
+    if not (approaching and (overlapping or disc >= 0.0)):
+        return np.inf
+    if overlapping:
+        return 0.0
+    return c / (-half_b + math.sqrt(disc if not disc < 0.0 else 0.0))
+
+
+@njit(cache=True, error_model='numpy')
+def _horner(q, s):
+    """Evaluate the quartic q (5 coefficients, highest first) at ``s``."""
+    out = q[0]
+    for k in range(1, 5):
+        out = out * s + q[k]
+    return out
+
+
+@njit(cache=True, error_model='numpy')
+def parabola_sphere_time(ox, oy, oz, cx, cy, cz, ax, ay, az, horizon):
+    """First s in [0, horizon] with |o + c s + a s^2 / 2| <= 1, inf for none.
+
+    Units of the contact distance r_i + r_j (the unit sphere), ``a`` the
+    relative acceleration of a falling and a static particle: the roots of
+    the quartic from the eigenvalues of its companion matrix (in units of
+    the horizon), polished by three Newton steps, bisection where the path
+    ends inside but no root was accepted.
+    """
+    span = max(horizon, 0.0)
+    vx, vy, vz = cx * span, cy * span, cz * span
+    s2 = span * span
+    kx, ky, kz = 0.5 * ax * s2, 0.5 * ay * s2, 0.5 * az * s2
+    ok = dot3(ox, oy, oz, kx, ky, kz)
+    q = np.empty(5)
+    q[0] = dot3(kx, ky, kz, kx, ky, kz)
+    q[1] = 2.0 * dot3(vx, vy, vz, kx, ky, kz)
+    q[2] = dot3(vx, vy, vz, vx, vy, vz) + 2.0 * ok
+    q[3] = 2.0 * dot3(ox, oy, oz, vx, vy, vz)
+    q[4] = dot3(ox, oy, oz, ox, oy, oz) - 1.0
+    inside = q[4] <= 0.0
+    if inside:
+        if q[3] < 0.0 or (q[3] == 0.0 and ok < 0.0):
+            return 0.0
+        return np.inf
+    if not (span > 0.0 and q[0] > 0.0):
+        return np.inf
+    companion = np.zeros((4, 4), dtype=np.complex128)
+    for k in range(4):
+        companion[0, k] = -q[k + 1] / q[0]
+    companion[1, 0] = companion[2, 1] = companion[3, 2] = 1.0
+    roots = np.linalg.eigvals(companion)
+    first = np.inf
+    for r in range(4):
+        re, im = roots[r].real, roots[r].imag
+        sigma = re if abs(im) <= 1e-6 * (1.0 + abs(re)) else np.inf
+        for _ in range(3):
+            value = _horner(q, sigma)
+            slope = ((4.0 * q[0] * sigma + 3.0 * q[1]) * sigma + 2.0 * q[2]) * sigma \
+                + 1.0 * q[3]
+            step = value / slope if slope != 0.0 else 0.0
+            sigma = sigma - step if np.isfinite(sigma) else np.inf
+        if sigma >= 0.0 and sigma <= 1.0 and sigma < first:
+            first = sigma
+    if not np.isfinite(first) and _horner(q, 1.0) <= 0.0:
+        lo, hi = 0.0, 1.0
+        for _ in range(BISECTIONS):
+            mid = 0.5 * (lo + hi)
+            if _horner(q, mid) <= 0.0:
+                hi = mid
+            else:
+                lo = mid
+        first = hi
+    return first * span
+
+
+@njit(cache=True, error_model='numpy', inline='always')
+def entering_time(gap, rate, curvature):
+    """First s >= 0 at which gap + rate s + curvature s^2 / 2 falls to 0.
+
+    A gap at or below zero that is closing (or not opening while pushed in)
+    counts as now; inf where it never happens.
+    """
+    disc = rate * rate - 2.0 * curvature * gap
+    root = math.sqrt(disc if not disc < 0.0 else 0.0)
+    closing = rate < 0.0
+    if curvature != 0.0:
+        if disc >= 0.0:
+            s = 2.0 * gap / (root - rate) if closing else (-rate - root) / curvature
+        else:
+            s = np.inf
+    else:
+        s = gap / -rate if closing else np.inf
+    if not s > 0.0:
+        s = np.inf
+    if gap <= 0.0 and (closing or (rate == 0.0 and curvature < 0.0)):
+        s = 0.0
+    return s
 
 
 def warm_up() -> None:

@@ -31,7 +31,7 @@ Pair candidates later than either particle's next wall event are not kept
 Impact times are closed-form: under one uniform g a pair's relative motion
 is straight (the smaller root of |d + u s| = r_i + r_j), a wall or a cell
 face is reached at the entering root of a quadratic in the gap (the
-operations of ``paths.entering_time``), and a pair whose own accelerations
+operations of ``primitives.entering_time``), and a pair whose own accelerations
 differ meets at the first root of a quartic (``curved_delay``). The velocity
 update is the compiled contact law (``law.primitives``). Which particle
 predicts a pair, and when, decides the last bits of an impact time: another
@@ -47,7 +47,8 @@ import numpy as np
 
 from ...step import numba_cache  # noqa: F401,I100 (chooses numba's cache directory first)
 from ...law.primitives import (apply_wall_normal, combined_coefficient, dot3,  # noqa: I100
-                               line_of_action, pair_impulse)
+                               entering_time, line_of_action, pair_impulse,
+                               sphere_contact_time)
 from numba import njit  # noqa: E402,I100
 from .resting_kernels import new_supports  # noqa: E402,I100
 from ...model.tunables import CANDIDATES  # noqa: E402,I100
@@ -345,26 +346,6 @@ def _advance(settings, particles, supports, schedule, p, when):
 
 
 @njit(cache=True, error_model='numpy', inline='always')
-def entering(gap, rate, curvature):
-    """``paths.entering_time`` for one gap (the same operations and special cases)."""
-    closing = rate < 0.0
-    if curvature != 0.0:
-        disc = rate * rate - 2.0 * curvature * gap
-        root = math.sqrt(disc if not disc < 0.0 else 0.0)
-        if disc >= 0.0:
-            s = 2.0 * gap / (root - rate) if closing else (-rate - root) / curvature
-        else:
-            s = _INF
-    else:
-        s = gap / (-rate) if closing else _INF
-    if not s > 0.0:
-        s = _INF
-    if gap <= 0.0 and (closing or (rate == 0.0 and curvature < 0.0)):
-        s = 0.0
-    return s
-
-
-@njit(cache=True, error_model='numpy', inline='always')
 def pair_delay(dx, dy, dz, rx, ry, rz, reach):
     """Delay until a pair touches, from its offset d, relative velocity r and reach (scalars).
 
@@ -382,21 +363,7 @@ def pair_delay(dx, dy, dz, rx, ry, rz, reach):
         return _INF
     ox, oy, oz = dx / reach, dy / reach, dz / reach
     ux, uy, uz = rx / reach, ry / reach, rz / reach
-    half_b = dot3(ox, oy, oz, ux, uy, uz)
-    c = dot3(ox, oy, oz, ox, oy, oz) - 1.0
-    u2 = dot3(ux, uy, uz, ux, uy, uz)
-    disc = half_b * half_b - u2 * c
-    approaching = half_b < 0.0
-    overlapping = c <= 0.0
-    if overlapping and half_b == 0.0:
-        # The dot product underflowed: decide with the scale-robust line of action.
-        nx, ny, nz, _ = line_of_action(dx, dy, dz, rx, ry, rz)
-        approaching = dot3(nx, ny, nz, rx, ry, rz) < 0.0
-    if not (approaching and (overlapping or disc >= 0.0)):
-        return _INF
-    if overlapping:
-        return 0.0
-    return c / (-half_b + math.sqrt(disc if not disc < 0.0 else 0.0))
+    return sphere_contact_time(ox, oy, oz, ux, uy, uz, dx, dy, dz, rx, ry, rz)
 
 
 @njit(cache=True, error_model='numpy', inline='always')
@@ -614,16 +581,17 @@ def _own_events(p, settings, particles, supports, grid, schedule, walls_too):
         x, v = particles.position[p, axis], particles.velocity[p, axis]
         g = supports.acceleration[p, axis] if varied else settings.gravity[axis]
         low_face = grid.cell[p, axis] * size
-        t_low = entering(x - low_face, v, g)
-        t_high = entering((low_face + size) - x, -v, -g)
+        t_low = entering_time(x - low_face, v, g)
+        t_high = entering_time((low_face + size) - x, -v, -g)
         if t_low < best_cell:
             best_cell, cell_face = t_low, 2 * axis
         if t_high < best_cell:
             best_cell, cell_face = t_high, 2 * axis + 1
         if walls_too and settings.has_walls:
-            w_low = _INF if resting_on >> (2 * axis) & 1 else entering(x - (low[axis] + r), v, g)
+            w_low = (_INF if resting_on >> (2 * axis) & 1
+                     else entering_time(x - (low[axis] + r), v, g))
             w_high = (_INF if resting_on >> (2 * axis + 1) & 1
-                      else entering((high[axis] - r) - x, -v, -g))
+                      else entering_time((high[axis] - r) - x, -v, -g))
             if w_low < best_wall:
                 best_wall, wall_face = w_low, 2 * axis
             if w_high < best_wall:

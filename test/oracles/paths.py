@@ -1,7 +1,7 @@
-"""Closed-form free paths between impacts, and the times they reach a contact.
+"""Closed-form free paths between impacts, and the times they reach a contact (numpy oracle).
 
-Shared by the swept stage of ``ccd`` (``stages/swept/swept_contacts.py``) and the
-event-driven mode (``stages/events/event_driven.py``). Under uniform gravity a
+The oracle of the compiled roots in ``law/primitives.py`` that the swept stage
+and the event-driven mode use. Under uniform gravity a
 dynamic particle moves on x(t) = x0 + v0 t + g t^2 / 2 and a static one
 does not move, so:
 
@@ -19,7 +19,7 @@ import numpy as np
 
 # Bisection steps that finish a quartic root the eigenvalues did not give
 # (2^-60 of the step: below rounding).
-from ..model.tunables import BISECTIONS  # noqa: E402
+from collision_node.physics.model.tunables import BISECTIONS  # noqa: E402
 
 
 def entering_time(gap: np.ndarray, rate: np.ndarray, curvature: np.ndarray) -> np.ndarray:

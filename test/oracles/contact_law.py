@@ -1,8 +1,8 @@
-"""The one contact law: every impulse any solver or preset applies comes from here.
+"""The contact law vectorised over contacts with numpy: the oracle of the compiled law.
 
-One law for particle pairs and for particle-wall contacts, whatever the
-accuracy preset (the walls stage, the sequential and batched contact
-solves, the swept stage of ``ccd``, the event-driven ``exact`` mode):
+The package applies the law through ``collision_node/physics/law/primitives.py``
+(compiled, one contact at a time); the tests hold it against this statement of
+the same law for pairs and particle-wall contacts:
 
 - **Combine rule** (restitution and friction alike): each side of a
   contact brings a coefficient, the contact uses their geometric mean
@@ -27,11 +27,10 @@ solves, the swept stage of ``ccd``, the event-driven ``exact`` mode):
 - **Impacts**: ``record_pairs`` / ``record_walls`` (``model/impacts.py``) append what the law
   resolved to the step's impact log, and do nothing without one.
 
-Everything here is vectorised over contacts (no Python loop per contact).
-``contact_kernels`` is the same law written for one contact at a time and
-compiled with numba (the same formulas in the same order of floating-point
-operations); the contact solve runs it, and ``test/test_contact_kernels.py``
-asserts both give identical velocities and bookings on the same contacts.
+Everything here is vectorised over contacts. The compiled kernels write the same
+formulas in the same order of floating-point operations, and
+``test/test_contact_kernels.py`` asserts both give identical velocities and
+bookings on the same contacts.
 """
 
 from __future__ import annotations
@@ -40,9 +39,10 @@ from typing import Optional
 
 import numpy as np
 
-from .friction import apply_pair_friction, apply_wall_friction  # noqa: F401 (the law's)
-from ..model.impacts import contact_points, record_pairs, record_walls  # noqa: F401
-from .impulse import closing_speed
+from oracles.friction import apply_pair_friction, apply_wall_friction  # noqa: F401 (the law's)
+from collision_node.physics.model.impacts import (  # noqa: F401
+    contact_points, record_pairs, record_walls)
+from oracles.impulse import closing_speed
 
 
 def combine(own_i: Optional[np.ndarray], own_j: Optional[np.ndarray], default):

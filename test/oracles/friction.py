@@ -18,7 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..model.energy import SPHERE_INERTIA, SPIN_FACTOR, STICK_FACTOR  # noqa: F401
+from collision_node.physics.model.energy import (  # noqa: F401
+    SPHERE_INERTIA, SPIN_FACTOR, STICK_FACTOR)
 
 
 def contact_slip(v_i: np.ndarray, v_j: np.ndarray, spin_i: np.ndarray, spin_j: np.ndarray,
