@@ -23,9 +23,11 @@ from collision_node.ros.qos import EVENTS_QOS
 from msg_adapters.strings import string_bytes, string_text
 from node_harness import InProcessNode, NodeUnderTest
 
+pytestmark = pytest.mark.ros
+
 DT = 1.0 / 240.0
 PARTICLES = 100_000
-# The issue's world: 100,000 particles of radius 0.8 mm on the default table.
+# A large world: 100,000 particles of radius 0.8 mm on the default table.
 SCENE = f'''name: gas_100k
 dimensions: 2
 dt: {DT!r}
