@@ -32,7 +32,7 @@ import sys
 from pathlib import Path
 from typing import Any, Optional
 
-from . import results as results_file
+from . import files as results_file
 
 RESULTS = results_file.RESULTS_DIR
 TEMPLATE = RESULTS / 'template.md.in'
@@ -70,7 +70,10 @@ def machine_text(data: dict[str, Any]) -> str:
     v = m.get('versions', {})
     software = ', '.join(f'{name} {v[name]}' for name in ('numpy', 'numba', 'scipy', 'rclpy')
                          if name in v)
-    peers = ', '.join(f'{name} {v[name]}' for name in PEERS if name in v)
+    # The peers this file compares with (a row of theirs in a table), not all installed.
+    labels = [row[0].lower() for table in tables(data) for row in table['rows']]
+    peers = ', '.join(f'{name} {v[name]}' for name in PEERS
+                      if name in v and any(label.startswith(name) for label in labels))
     load = data['load_average_start']
     end = data.get('load_average_end')
     ran = f'run {data["started_utc"]} UTC in {data["seconds"]:g} s'
@@ -165,14 +168,23 @@ def table_text(table: dict[str, Any]) -> str:
 
 
 def text_line(line: str) -> str:
-    """Return a printed line as a paragraph (no heading marks; pipes and stars escaped)."""
+    """Return a printed line as a paragraph: no heading marks, Markdown's marks escaped.
+
+    Pipes, stars and every underscore not inside a word (``__pycache__``) are escaped.
+    """
     line = re.sub(r'^#+\s*', '', line.strip())
-    return re.sub(r'([|*_])', r'\\\1', line)
+    line = re.sub(r'([|*])', r'\\\1', line)
+    return re.sub(r'(?<![A-Za-z0-9])_|_(?![A-Za-z0-9])', r'\\_', line)
 
 
-def results_block(data: dict[str, Any], only: Optional[list[int]], text: bool) -> str:
-    """Return the rendered results of one file: machine, command, text and tables."""
-    parts = [f'Measured on: {machine_text(data)}.', '```bash\n' + data['command'] + '\n```']
+def results_block(data: dict[str, Any], only: Optional[list[int]], text: bool,
+                  again: bool = False) -> str:
+    """Return the rendered results of one file: machine, command, text and tables.
+
+    ``again``: the file's machine and command are on the page already; say so instead.
+    """
+    parts = ([f'The same run of `{data["benchmark"]}` as above.'] if again else
+             [f'Measured on: {machine_text(data)}.', '```bash\n' + data['command'] + '\n```'])
     if data.get('exit_code', 0) != 0:
         parts.append(f'The benchmark exited with code {data["exit_code"]}.')
     index = -1
@@ -196,8 +208,8 @@ def results_block(data: dict[str, Any], only: Optional[list[int]], text: bool) -
 
 
 def results_directive(words: list[str], results: dict[str, dict[str, Any]],
-                      used: set[str]) -> str:
-    """Render a ``results NAME [tables=...] [text=no]`` directive."""
+                      shown: set[str]) -> str:
+    """Render a ``results NAME [tables=...] [text=no]`` directive (``shown``: names so far)."""
     if len(words) < 2:
         raise ReportError('results: needs a file name')
     name, only, text = words[1], None, True
@@ -213,8 +225,9 @@ def results_directive(words: list[str], results: dict[str, dict[str, Any]],
         else:
             raise ReportError(f'results {name}: unknown option {word!r} '
                               '(tables=N[,N...], text=yes|no)')
-    used.add(name)
-    return results_block(data, only, text)
+    again = name in shown
+    shown.add(name)
+    return results_block(data, only, text, again)
 
 
 def inline_directive(words: list[str], results: dict[str, dict[str, Any]],
@@ -248,19 +261,20 @@ def split_words(text: str, line: int) -> list[str]:
 def render(template: str, results: dict[str, dict[str, Any]]) -> str:
     """Return the page: the template with its directives filled, then unused results."""
     used: set[str] = set()
+    shown: set[str] = set()
     out = []
     for number_, line in enumerate(template.splitlines(), 1):
         block = BLOCK.match(line)
         try:
             if block:
                 out.append(results_directive(split_words(block.group(1), number_), results,
-                                             used))
+                                             shown))
                 continue
             out.append(INLINE.sub(lambda m: inline_directive(
                 split_words(m.group(1), number_), results, used), line))
         except ReportError as error:
             raise ReportError(f'template line {number_}: {error}') from None
-    rest = [name for name in results if name not in used]
+    rest = [name for name in results if name not in used | shown]
     if rest:
         out += ['', '## Other results', '']
         for name in rest:

@@ -40,6 +40,9 @@ VERSIONS = ('numpy', 'numba', 'scipy', 'rclpy', 'pymunk', 'mujoco', 'pybullet')
 ENVIRONMENT = ('NUMBA_CACHE_DIR', 'NUMBA_DISABLE_JIT', 'RMW_IMPLEMENTATION')
 PROGRAM = 'python -m collision_node.bench'
 SEPARATOR = re.compile(r'^\|(\s*:?-{3,}:?\s*\|)+\s*$')
+# A JSON list of scalars as json.dumps(indent=1) writes it, one item a line.
+_SCALAR = r'(?:"(?:[^"\\]|\\.)*"|-?[\d.eE+-]+|true|false|null)'
+SCALAR_LIST = re.compile(r'\[\s*' + _SCALAR + r'(?:,\s*' + _SCALAR + r')*\s*\]')
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -258,18 +261,29 @@ def run_recorded(name: str, run: Callable[[argparse.Namespace], int],
         return 2
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.touch()
     except OSError as error:
         print(f'bench {name}: --out {path}: cannot write: {error.strerror}', file=sys.stderr)
+        return 2
+    if not os.access(path if path.exists() else path.parent, os.W_OK):
+        print(f'bench {name}: --out {path}: cannot write: permission denied', file=sys.stderr)
         return 2
     started = {'machine': machine(), 'load': load_average(), 'clock': time.monotonic(),
                'utc': datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M')}
     with captured() as tee:
         exit_code = int(run(args))
     result = record(name, argv, args, tee.copy.getvalue(), exit_code, started)
-    path.write_text(json.dumps(result, indent=1, ensure_ascii=False) + '\n', encoding='utf-8')
+    path.write_text(dumps(result), encoding='utf-8')
     print(f'results: {path}', file=sys.stderr)
     return exit_code
+
+
+def dumps(data: dict[str, Any]) -> str:
+    """Return ``data`` as indented JSON with every list of scalars (a table row) on one line."""
+    text = json.dumps(data, indent=1, ensure_ascii=False)
+    compact = SCALAR_LIST.sub(lambda match: json.dumps(json.loads(match.group(0)),
+                                                       ensure_ascii=False), text)
+    # A list written inside a string value could have been matched too: keep the plain text.
+    return (compact if json.loads(compact) == data else text) + '\n'
 
 
 def read(path: Path) -> dict[str, Any]:
