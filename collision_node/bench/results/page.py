@@ -163,17 +163,19 @@ def table_text(table: dict[str, Any]) -> str:
     align = list(table['align']) + ['left'] * (len(table['columns']) - len(table['align']))
     lines = ['| ' + ' | '.join(table['columns']) + ' |',
              '|' + '|'.join(marks[a] for a in align) + '|']
-    lines += ['| ' + ' | '.join(row) + ' |' for row in table['rows']]
+    lines += ['| ' + ' | '.join(cell.replace('<', '\\<') for cell in row) + ' |'
+              for row in table['rows']]
     return '\n'.join(lines)
 
 
 def text_line(line: str) -> str:
     """Return a printed line as a paragraph: no heading marks, Markdown's marks escaped.
 
-    Pipes, stars and every underscore not inside a word (``__pycache__``) are escaped.
+    Pipes, stars, ``<`` (no HTML) and every underscore not inside a word
+    (``__pycache__``) are escaped.
     """
     line = re.sub(r'^#+\s*', '', line.strip())
-    line = re.sub(r'([|*])', r'\\\1', line)
+    line = re.sub(r'([|*<])', r'\\\1', line)
     return re.sub(r'(?<![A-Za-z0-9])_|_(?![A-Za-z0-9])', r'\\_', line)
 
 
