@@ -212,3 +212,11 @@ def test_a_benchmark_writes_its_results_file(tmp_path, capsys):
 def test_an_unwritable_results_file_is_refused_before_the_run(tmp_path, capsys):
     assert bench.main(['exact', '--counts', '200', '--out', str(tmp_path)]) == 2
     assert 'is a folder' in capsys.readouterr().err
+
+
+def test_results_dir_without_a_folder_writes_to_docs_performance(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert bench.main(['exact', '--counts', '200', '--steps', '1', '--results-dir']) == 0
+    data = results.read(tmp_path / 'docs' / 'performance' / 'exact.json')
+    assert data['command'] == 'python -m collision_node.bench exact --counts 200 --steps 1 ' \
+        '--results-dir'

@@ -35,7 +35,8 @@ RESULTS_DIR = Path('docs/performance')
 # Version of the file layout below; ``bench report`` refuses other versions.
 FORMAT = 1
 # Distributions whose versions a result names when installed (peers included).
-VERSIONS = ('numpy', 'numba', 'scipy', 'rclpy', 'pymunk', 'mujoco', 'pybullet')
+VERSIONS = ('numpy', 'numba', 'scipy', 'ros-jazzy-rclpy', 'rclpy', 'pymunk', 'mujoco',
+            'pybullet')
 # Environment variables that change what a benchmark measures.
 ENVIRONMENT = ('NUMBA_CACHE_DIR', 'NUMBA_DISABLE_JIT', 'RMW_IMPLEMENTATION')
 PROGRAM = 'python -m collision_node.bench'

@@ -68,8 +68,10 @@ def machine_text(data: dict[str, Any]) -> str:
     """Return one sentence naming the machine, its software and the run's date and load."""
     m = data['machine']
     v = m.get('versions', {})
-    software = ', '.join(f'{name} {v[name]}' for name in ('numpy', 'numba', 'scipy', 'rclpy')
-                         if name in v)
+    software = ', '.join(f'{name} {v[name]}' for name in ('numpy', 'numba', 'scipy') if name in v)
+    # The project's pinned rclpy is ROS 2 Jazzy's wheel (another distribution ships rclpy too).
+    rclpy = v.get('ros-jazzy-rclpy', v.get('rclpy'))
+    software += f', rclpy {rclpy}' if rclpy else ''
     # The peers this file compares with (a row of theirs in a table), not all installed.
     labels = [row[0].lower() for table in tables(data) for row in table['rows']]
     peers = ', '.join(f'{name} {v[name]}' for name in PEERS
