@@ -130,13 +130,13 @@ def test_a_peer_row_adds_the_ratio_column_and_directives_fill_in(tmp_path):
     data = fake_results(tmp_path)
     template = ('# Page\n\n'
                 'fast takes {{ ratio fake 0 fast pymunk "CPU ms per step" }}x, '
-                '{{ cell fake 0 fast "ms per step" }} ms.\n\n'
+                '{{ cell fake 0 fast "ms per step" }} ms at load {{ load fake }}.\n\n'
                 '{{ results fake }}\n\n{{ results fake tables=0 text=no }}\n')
     page = report.render(template, report.load_results(tmp_path))
     assert '| run | steps | ms per step | CPU ms per step | CPU time / pymunk 7.3.1 |' in page
     assert '| fast | 10 | 0.5 | 0.4 | 2.00x |' in page
     assert '| pymunk 7.3.1 | 10 | 0.25 | 0.2 | 1.00x |' in page
-    assert 'fast takes 2x, 0.5 ms.' in page
+    assert 'fast takes 2x, 0.5 ms at load 1.0.' in page
     assert '```bash\npython -m collision_node.bench fake --out x.json\n```' in page
     # The machine and the command once; the second block of the same run says so.
     assert page.count(report.machine_text(data)) == 1 and page.count('--out x.json') == 1
