@@ -4,7 +4,11 @@ Each subcommand lives in a module of its own that exposes
 ``add_arguments(parser)`` and ``run(args) -> int``. Registering one is a
 one-line change: add ``'NAME': 'collision_node.bench.NAME'`` to
 ``SUBCOMMANDS``. Modules are imported only when their subcommand runs, so
-one that needs ROS (``bench.node``) costs the others nothing.
+one that needs ROS (``bench.node``) costs the others nothing. Every
+subcommand but those in ``OWN_RESULTS`` also takes ``--out FILE`` and
+``--results-dir [DIR]`` and then writes its results as JSON
+(:mod:`collision_node.bench.results.files`); ``report`` renders
+docs/performance.md from those files.
 """
 
 from __future__ import annotations
@@ -27,7 +31,11 @@ SUBCOMMANDS: dict[str, str] = {
     'exact': 'collision_node.bench.exact',
     'node-start': 'collision_node.bench.node_start',
     'resting': 'collision_node.bench.resting',
+    'report': 'collision_node.bench.results.page',
 }
+# Subcommands that write files of their own instead of a results file (as does any
+# subcommand that declares an --out of its own).
+OWN_RESULTS = frozenset({'accuracy', 'report'})
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -41,8 +49,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         module = importlib.import_module(SUBCOMMANDS[argv[0]])
         sub = commands.add_parser(argv[0], help=(module.__doc__ or '').split('\n')[0])
         module.add_arguments(sub)
+        # A module with an --out of its own writes its own files.
+        if argv[0] in OWN_RESULTS or '--out' in sub._option_string_actions:
+            return int(module.run(parser.parse_args(argv)))
+        from .results import files
+        files.add_arguments(sub)
         args = parser.parse_args(argv)
-        return int(module.run(args))
+        return files.run_recorded(argv[0], module.run, args, argv)
     for name in SUBCOMMANDS:
         commands.add_parser(name)
     parser.parse_args(argv)  # prints usage and exits 2 for an unknown subcommand
