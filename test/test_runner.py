@@ -231,18 +231,18 @@ def test_signal_stops_the_run_and_keeps_the_work(tmp_path, sig):
         result['stats']['kinetic_energy'][0], rel=1e-9)
 
 
-# One step of this gas takes about 17 s on the 2-core test machine (5,000 particles,
+# One step of this gas takes about 8 s on an idle 2-core machine (10,000 particles,
 # each step split into 1000 substeps of the accurate preset): a signal sent once the
 # progress bar shows (2 s into the run) lands inside the first step.
 HUGE_STEP_SCENE = '''name: huge_step
 dimensions: 2
-dt: 0.01
-duration: 0.03
+dt: 0.02
+duration: 0.06
 effects:
   walls: {min: [-1.0, -1.0], max: [1.0, 1.0]}
 accuracy: {preset: accurate, substeps: 1000}
 generate:
-  - {kind: gas, count: 5000, radius: 0.004, mass: 1.0, speed: 1.0, seed: 1,
+  - {kind: gas, count: 10000, radius: 0.004, mass: 1.0, speed: 1.0, seed: 1,
      region: {min: [-1.0, -1.0], max: [1.0, 1.0]}}
 '''
 
@@ -285,9 +285,9 @@ def test_sigterm_inside_a_huge_step_ends_the_run_within_a_second(tmp_path):
             process.wait()
     assert process.returncode == 130, stderr
     # The runner waits STOP_GRACE_S (0.5 s) for the step to end, then writes the
-    # summary and 5,000 particles of JSON (0.3 s on a loaded machine): within a
+    # summary and 10,000 particles of JSON (0.6 s on a loaded machine): within a
     # second, plus the process's exit. 1 s more leaves room for a loaded machine,
-    # not for waiting on the step (17 s).
+    # not for waiting on the step (8 s).
     assert took < 2.0, f'{took:.2f} s from SIGTERM to exit'
     assert stderr_lines(stderr) == [
         f'simulate: SIGTERM: step 1 did not end within {simulate.STOP_GRACE_S:g} s and was '
