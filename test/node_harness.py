@@ -27,6 +27,7 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
+from std_srvs.srv import Trigger
 
 _domains = itertools.count()
 # Domain id -> the open lock file that holds it, oldest first.
@@ -232,12 +233,32 @@ class NodeUnderTest:
         return self.requests[key]
 
     def request(self, msg_type: Any, topic: str, msg: Any) -> dict:
-        """Publish a command and return the event that answers it."""
+        """Publish a command and return the first event from now on that answers its kind.
+
+        Events and service replies travel on different topics, so an event
+        of an earlier service call may still arrive after that call's reply;
+        it is of another kind, or taken by ``reset`` below.
+        """
         pub = self.publisher(msg_type, topic)
+        return self.next_event(topic, lambda: pub.publish(msg))[0]
+
+    def next_event(self, kind: str, send: Callable[[], Any]) -> tuple[dict, Any]:
+        """Run ``send``; return the first event of ``kind`` received after it, and what it gave."""
         start = len(self.events)
-        pub.publish(msg)
-        self.probe.wait_for(lambda: len(self.events) > start)
-        return json.loads(self.events[start].data)
+        result = send()
+
+        def answered():
+            for message in self.events[start:]:
+                event = json.loads(message.data)
+                if event['request'] == kind:
+                    return event
+            return None
+        return self.probe.wait_for(answered), result
+
+    def reset(self, client: Any, timeout: float = 15.0) -> Any:
+        """Call the ``reset`` service; return its response once its event has arrived too."""
+        return self.next_event('reset', lambda: self.probe.call(client, Trigger.Request(),
+                                                                timeout))[1]
 
     def stop(self, sig: int = signal.SIGINT) -> tuple[int, str, str]:
         """Stop the probe and the node; return the node's exit code and output."""

@@ -47,8 +47,7 @@ def node():
 @pytest.fixture
 def fresh(node):
     """Reset the world (service) before a test; give the node."""
-    response = node.probe.call(node.reset_client, Trigger.Request())
-    assert response.success
+    assert node.reset(node.reset_client).success
     return node
 
 
@@ -195,7 +194,7 @@ def test_parameter_changes_take_effect_and_reset_restores_time_zero(fresh):
         moving = fresh.next_status(lambda s: s['time'] > 0.1)
         assert not moving['paused'] and moving['particles'] == PARTICLES
         seen = len(fresh.statuses)
-        response = fresh.probe.call(fresh.reset_client, Trigger.Request())
+        response = fresh.reset(fresh.reset_client)
         assert response.success and 'time 0' in response.message
         # The node announces the reset in a status before it replies.
         after = fresh.probe.wait_for(lambda: [json.loads(m.data) for m in

@@ -55,7 +55,7 @@ def node():
 @pytest.fixture
 def fresh(node):
     """Reset the world (service) before a test; give the node."""
-    assert node.probe.call(node.reset_client, Trigger.Request()).success
+    assert node.reset(node.reset_client).success
     node.initial = world(node)
     return node
 
