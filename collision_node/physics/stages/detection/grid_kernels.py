@@ -410,6 +410,25 @@ def _append_near(first, stop, point, own_reach, query, item, item_position, part
     return count
 
 
+@njit(cache=True, inline='always')
+def _half_row(bucket, base, m, cell, shape, r):
+    """Return the item range (first, stop) of row ``r`` of item m's half neighbourhood.
+
+    The rows are (cy, cz), (cy + 1, cz), then (cy - 1 .. cy + 1, cz + 1),
+    each over columns cx - 1 .. cx + 1; row 0 starts after item m itself. A
+    row outside the grid is empty, (0, 0). ``cell`` is m's cell and
+    ``shape`` the grid's cells per axis, both from the grid's low corner.
+    """
+    cx, cy, cz = cell
+    nx, ny, nz = shape
+    ry, rz = (cy + r, cz) if r < 2 else (cy + r - 3, cz + 1)
+    if ry < 0 or ry >= ny or rz >= nz:
+        return 0, 0
+    row = base + (rz * ny + ry) * nx
+    first = m + 1 if r == 0 else bucket[row + max(cx - 1, 0)]
+    return first, bucket[row + min(cx + 1, nx - 1) + 1]
+
+
 @njit(cache=True)
 def _dense_pairs(grid, item_reach, out_a, out_b):
     """Write the unsorted pairs of a grid of one dense class; return (count, items done).
@@ -437,15 +456,8 @@ def _dense_pairs(grid, item_reach, out_a, out_b):
         own_reach = item_reach[m]
         query = item[m]
         cx, cy, cz = item_cell[m, 0] - lx, item_cell[m, 1] - ly, item_cell[m, 2] - lz
-        first_cell, last_cell = max(cx - 1, 0), min(cx + 1, nx - 1)
         for r in range(5):
-            # Rows (cy, cz), (cy + 1, cz), then (cy - 1 .. cy + 1, cz + 1).
-            ry, rz = (cy + r, cz) if r < 2 else (cy + r - 3, cz + 1)
-            if ry < 0 or ry >= ny or rz >= nz:
-                continue
-            row = base + (rz * ny + ry) * nx
-            first = m + 1 if r == 0 else bucket[row + first_cell]
-            stop = bucket[row + last_cell + 1]
+            first, stop = _half_row(bucket, base, m, (cx, cy, cz), (nx, ny, nz), r)
             if count + (stop - first) > capacity:
                 return count, m
             count = _append_near(first, stop, point, own_reach, query, item, item_position,
@@ -472,14 +484,9 @@ def _dense_candidates(grid, items):
     total = 0.0
     for m in range(items):
         cx, cy, cz = item_cell[m, 0] - lx, item_cell[m, 1] - ly, item_cell[m, 2] - lz
-        first_cell, last_cell = max(cx - 1, 0), min(cx + 1, nx - 1)
         for r in range(5):
-            ry, rz = (cy + r, cz) if r < 2 else (cy + r - 3, cz + 1)
-            if ry < 0 or ry >= ny or rz >= nz:
-                continue
-            row = base + (rz * ny + ry) * nx
-            first = m + 1 if r == 0 else bucket[row + first_cell]
-            total += bucket[row + last_cell + 1] - first
+            first, stop = _half_row(bucket, base, m, (cx, cy, cz), (nx, ny, nz), r)
+            total += stop - first
     return total
 
 
