@@ -3,9 +3,12 @@
 Pair and wall impulses with inverse masses, the combine rule, Coulomb
 friction with spin, the line of action, and the energy each impulse
 removes, booked per particle. Every solver and preset calls these; none
-re-derives them. Friction helpers take the particles as one ``Bodies``
-record and a contact's normal, impulse and spin factors as 3- and
-2-tuples (the same floating-point operations as scalar arguments).
+re-derives them. Friction helpers take the particle arrays (velocity,
+spin, inverse mass, radius) and a contact's normal, impulse and spin
+factors as 3- and 2-tuples (the same floating-point operations as scalar
+arguments). A ``Bodies`` record is unpacked by the caller once, outside its
+loop: a record handed to an inlined helper costs numba a reference count
+per array at every contact.
 """
 
 from __future__ import annotations
@@ -94,20 +97,21 @@ def pair_friction(v, ang, inv_mass, radius, a, b, nx, ny, nz, normal_impulse, mu
     energy removed J).
     """
     spin_b = spin_factor(inv_mass, radius, b) if b >= 0 else 0.0
-    return pair_friction_spun(Bodies(v, ang, inv_mass, radius), a, b, (nx, ny, nz),
-                              normal_impulse, mu, planar,
-                              (spin_factor(inv_mass, radius, a), spin_b))
+    return pair_friction_spun(v, ang, inv_mass, radius, a, b, (nx, ny, nz), normal_impulse,
+                              mu, planar, (spin_factor(inv_mass, radius, a), spin_b))
 
 
 @njit(cache=True)
-def pair_friction_spun(bodies, first, second, normal, normal_impulse, mu, planar, spins):
+def pair_friction_spun(v, ang, inv_mass, radius, first, second, normal, normal_impulse, mu,
+                       planar, spins):
     """``pair_friction`` with the particles' ``spin_factor`` values given as ``spins``.
 
     A solve computes them once per particle instead of at every visit: the
     divisions are most of a contact visit's arithmetic.
     """
-    magnitude, removed, _impulse = friction_vector(bodies, first, second, normal,
-                                                   normal_impulse, mu, planar, spins, True)
+    magnitude, removed, _impulse = friction_vector(v, ang, inv_mass, radius, first, second,
+                                                   normal, normal_impulse, mu, planar, spins,
+                                                   True)
     return magnitude, removed
 
 
@@ -201,8 +205,8 @@ def into_cone(impulse, normal, planar, bound):
 
 
 @njit(cache=True, inline='always')
-def friction_accumulated(bodies, first, second, normal, normal_total, mu, planar, spins,
-                         accumulated, row):
+def friction_accumulated(v, ang, inv_mass, radius, pair, normal, normal_total, mu, planar,
+                         spins, accumulated, row):
     """Coulomb friction with spin on an accumulated tangential impulse (``second`` < 0: a wall).
 
     ``accumulated[row]`` is the contact's tangential impulse on ``first``
@@ -214,13 +218,16 @@ def friction_accumulated(bodies, first, second, normal, normal_total, mu, planar
     Returns (|change| N s, J removed): -(dJ . u_t + k |dJ|^2 / 2), the
     exact work of a tangential impulse on a sphere's contact point.
     """
+    first, second = pair
     ox, oy, oz = accumulated[row, 0], accumulated[row, 1], accumulated[row, 2]
     if ox == 0.0 and oy == 0.0 and oz == 0.0:
         magnitude, removed, (jx, jy, jz) = friction_vector(
-            bodies, first, second, normal, normal_total, mu, planar, spins, True)
+            v, ang, inv_mass, radius, first, second, normal, normal_total, mu, planar, spins,
+            True)
         accumulated[row, 0], accumulated[row, 1], accumulated[row, 2] = jx, jy, jz
         return magnitude, removed
-    tx, ty, tz, w_sum = tangential_slip(bodies, first, second, normal, planar)
+    tx, ty, tz, w_sum = tangential_slip(v, ang, inv_mass, radius, first, second, normal,
+                                        planar)
     k = STICK_FACTOR * w_sum
     if not k > 0.0:
         return 0.0, 0.0
@@ -232,25 +239,24 @@ def friction_accumulated(bodies, first, second, normal, normal_total, mu, planar
     jx, jy, jz = qx - ox, qy - oy, qz - oz
     accumulated[row, 0], accumulated[row, 1], accumulated[row, 2] = qx, qy, qz
     removed = -(dot3(jx, jy, jz, tx, ty, tz) + 0.5 * k * dot3(jx, jy, jz, jx, jy, jz))
-    apply_tangential(bodies, first, second, normal, (jx, jy, jz), spins)
+    apply_tangential(v, ang, inv_mass, first, second, normal, (jx, jy, jz), spins)
     return math.sqrt(dot3(jx, jy, jz, jx, jy, jz)), removed
 
 
 @njit(cache=True, inline='always')
-def tangential_slip(bodies, first, second, normal, planar):
+def tangential_slip(v, ang, inv_mass, radius, first, second, normal, planar):
     """Return the slip velocity of the contact points (tangent to N) and w_first + w_second.
 
     ``second`` < 0 is a static wall. The one place the friction kernels
     take the contact points' relative velocity (spin included) from.
     """
-    v, ang, radius = bodies.velocity, bodies.angular_velocity, bodies.radius
     nx, ny, nz = normal
     a, b = first, second
-    w_sum = bodies.inv_mass[a]
+    w_sum = inv_mass[a]
     sx, sy, sz = radius[a] * ang[a, 0], radius[a] * ang[a, 1], radius[a] * ang[a, 2]
     ux, uy, uz = v[a, 0], v[a, 1], v[a, 2]
     if b >= 0:
-        w_sum = w_sum + bodies.inv_mass[b]
+        w_sum = w_sum + inv_mass[b]
         sx += radius[b] * ang[b, 0]
         sy += radius[b] * ang[b, 1]
         sz += radius[b] * ang[b, 2]
@@ -268,12 +274,11 @@ def tangential_slip(bodies, first, second, normal, planar):
 
 
 @njit(cache=True, inline='always')
-def apply_tangential(bodies, first, second, normal, impulse, spins):
+def apply_tangential(v, ang, inv_mass, first, second, normal, impulse, spins):
     """Apply tangential ``impulse`` J on ``first`` (-J on ``second`` if >= 0), with its spin.
 
     ``spins``: the two particles' ``spin_factor`` values.
     """
-    v, ang, inv_mass = bodies.velocity, bodies.angular_velocity, bodies.inv_mass
     nx, ny, nz = normal
     jx, jy, jz = impulse
     spin_a, spin_b = spins
@@ -297,13 +302,15 @@ def apply_tangential(bodies, first, second, normal, impulse, spins):
 
 
 @njit(cache=True)
-def friction_vector(bodies, first, second, normal, normal_impulse, mu, planar, spins, apply):
+def friction_vector(v, ang, inv_mass, radius, first, second, normal, normal_impulse, mu, planar,
+                    spins, apply):
     """``pair_friction_spun``'s law, also returning the impulse vector (same operations).
 
     Returns (magnitude N s, J removed, (jx, jy, jz) on ``first``); the
     impulse is applied only with ``apply``.
     """
-    tx, ty, tz, w_sum = tangential_slip(bodies, first, second, normal, planar)
+    tx, ty, tz, w_sum = tangential_slip(v, ang, inv_mass, radius, first, second, normal,
+                                        planar)
     slip = math.sqrt(dot3(tx, ty, tz, tx, ty, tz))
     k = STICK_FACTOR * w_sum
     stick = slip / k if (slip > 0.0 and k > 0.0) else 0.0
@@ -314,7 +321,7 @@ def friction_vector(bodies, first, second, normal, normal_impulse, mu, planar, s
         jx = jy = jz = -magnitude * 0.0
     removed = magnitude * slip - 0.5 * k * (magnitude * magnitude)
     if apply:
-        apply_tangential(bodies, first, second, normal, (jx, jy, jz), spins)
+        apply_tangential(v, ang, inv_mass, first, second, normal, (jx, jy, jz), spins)
     return math.sqrt(dot3(jx, jy, jz, jx, jy, jz)), removed, (jx, jy, jz)
 
 

@@ -195,7 +195,7 @@ def _solve_wall_plane(bodies, marks, walls, impulses, settings, tolerance, start
     ``solve_contacts``); impact impulses go to ``impact_total``, and a
     bounce never reflects the closing speed that warm pushes added.
     """
-    v, inv_mass = bodies.velocity, bodies.inv_mass
+    v, ang, inv_mass, radius = bodies
     threshold, accumulate = settings.threshold, settings.accumulate
     any_hit = False
     for c in range(start, stop):
@@ -244,11 +244,13 @@ def _solve_wall_plane(bodies, marks, walls, impulses, settings, tolerance, start
             spins = (marks.spin[p], 0.0)
             if accumulate:
                 tangential, lost = friction_accumulated(
-                    bodies, p, -1, normal, impulses.resting[c] + impulses.impact_total[c],
-                    walls.friction[c], settings.planar, spins, impulses.resting_tangential, c)
+                    v, ang, inv_mass, radius, (p, -1), normal,
+                    impulses.resting[c] + impulses.impact_total[c], walls.friction[c],
+                    settings.planar, spins, impulses.resting_tangential, c)
             else:
-                tangential, lost = pair_friction_spun(bodies, p, -1, normal, magnitude,
-                                                      walls.friction[c], settings.planar, spins)
+                tangential, lost = pair_friction_spun(v, ang, inv_mass, radius, p, -1, normal,
+                                                      magnitude, walls.friction[c],
+                                                      settings.planar, spins)
             book_loss(losses.per_particle, FRICTION, p, lost)
             losses.totals[FRICTION] += lost
             impulses.tangential[c] += tangential
@@ -404,10 +406,12 @@ def _warm_tangential(bodies, first, second, normal, bound, planar, spins, accumu
     accumulated[row, 0], accumulated[row, 1], accumulated[row, 2] = qx, qy, qz
     if qx == 0.0 and qy == 0.0 and qz == 0.0:
         return 0.0
-    tx, ty, tz, w_sum = tangential_slip(bodies, first, second, normal, planar)
+    v, ang, inv_mass, radius = bodies
+    tx, ty, tz, w_sum = tangential_slip(v, ang, inv_mass, radius, first, second, normal,
+                                        planar)
     k = STICK_FACTOR * w_sum
     removed = -(dot3(qx, qy, qz, tx, ty, tz) + 0.5 * k * dot3(qx, qy, qz, qx, qy, qz))
-    apply_tangential(bodies, first, second, normal, (qx, qy, qz), spins)
+    apply_tangential(v, ang, inv_mass, first, second, normal, (qx, qy, qz), spins)
     return removed
 
 
@@ -518,8 +522,8 @@ def _start_solve(bodies, marks, pairs, walls, pair_impulses, wall_impulses, sett
 @njit(cache=True)
 def _sweep_pairs(bodies, marks, pairs, impulses, settings, losses):
     """Visit every pair once in visit order (one Gauss-Seidel sweep); return whether any did."""
-    v, inv_mass, normal, rest = bodies.velocity, bodies.inv_mass, pairs.normal, \
-        pairs.restitution
+    v, ang, inv_mass, radius = bodies
+    normal, rest = pairs.normal, pairs.restitution
     struck, warm, warmed = marks.struck, marks.warm_change, marks.warmed
     threshold, tolerance, accumulate = settings.threshold, settings.tolerance, \
         settings.accumulate
@@ -582,11 +586,13 @@ def _sweep_pairs(bodies, marks, pairs, impulses, settings, losses):
             spins = (marks.spin[a], marks.spin[b])
             if accumulate:
                 tangential, lost = friction_accumulated(
-                    bodies, a, b, (nx, ny, nz), resting[k] + impulses.impact_total[k],
-                    pairs.friction[k], settings.planar, spins, impulses.resting_tangential, k)
+                    v, ang, inv_mass, radius, (a, b), (nx, ny, nz),
+                    resting[k] + impulses.impact_total[k], pairs.friction[k], settings.planar,
+                    spins, impulses.resting_tangential, k)
             else:
-                tangential, lost = pair_friction_spun(bodies, a, b, (nx, ny, nz), magnitude,
-                                                      pairs.friction[k], settings.planar, spins)
+                tangential, lost = pair_friction_spun(v, ang, inv_mass, radius, a, b,
+                                                      (nx, ny, nz), magnitude, pairs.friction[k],
+                                                      settings.planar, spins)
             book_pair_loss(losses.per_particle, FRICTION, a, b, lost, pairs.share[k])
             losses.totals[FRICTION] += lost
             impulses.tangential[k] += tangential
