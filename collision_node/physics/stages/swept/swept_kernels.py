@@ -429,6 +429,39 @@ def _predict_falling(first, last, use_keys, round_, particles, pairs, clock, key
     return n_pending
 
 
+@njit(cache=True, error_model='numpy')
+def _predict_straight_pairs(first, last, use_keys, round_, particles, pairs, clock, keys,
+                            settings, has_resting, n_pending):
+    """Predict pairs again on straight paths; list the due ones; return the pending count.
+
+    The pairs as ``_predict_falling`` takes them; each gets ``pair_time``
+    with the scene's threshold, and a resting pair not yet touched none.
+    The records are unpacked once for the loop: through an inlined per-pair
+    helper each pair cost a reference count per array.
+    """
+    x, v, radius, dynamic = particles.position, particles.velocity, particles.radius, \
+        particles.dynamic
+    local_time, touched = clock.local_time, clock.touched
+    first_of, second_of, resting, seen = pairs.first, pairs.second, pairs.resting, pairs.seen
+    gravity, min_speed, dt = settings.gravity, settings.min_speed, settings.dt
+    for slot in range(first, last):
+        k = slot
+        if use_keys:
+            k = keys[slot]
+            if seen[k] == round_:
+                continue
+            seen[k] = round_
+        i, j = first_of[k], second_of[k]
+        if min_speed > 0.0:
+            t = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, False, min_speed, dt)
+        else:
+            t = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, False, 0.0, dt)
+        if has_resting and resting[k] and not (touched[i] or touched[j]):
+            t = np.inf
+        n_pending = _list_if_due(k, t, dt, pairs.time, pairs.listed, pairs.pending, n_pending)
+    return n_pending
+
+
 @njit(cache=True, error_model='numpy', inline='always')
 def _predict_pair(k, particles, pairs, clock, settings, has_resting, n_pending):
     """Predict pair k again; list it if due in the step; return the pending count."""
@@ -538,20 +571,32 @@ def _predict_all_walls(particles, clock, box, settings, has_resting, resting_wal
 
 
 @njit(cache=True, error_model='numpy', inline='always')
-def _advance(particles, local_time, p, when, settings, tally):
-    """Move particle p on its free path to ``when``: drag-free, or drag's closed form."""
+def _move(x, v, local_time, p, when, gravity, has_gravity):
+    """Move particle p on its drag-free path to ``when``.
+
+    Arrays, not records: a record handed to an inlined helper costs a
+    reference count per array at every call.
+    """
     tau = when - local_time[p]
     local_time[p] = when
-    if settings.has_drag:
-        _advance_with_drag(particles, p, tau, settings, tally)
-        return
-    x, v, gravity = particles.position, particles.velocity, settings.gravity
     for k in range(3):
-        if settings.has_gravity:
+        if has_gravity:
             x[p, k] = x[p, k] + v[p, k] * tau + 0.5 * gravity[k] * tau * tau
             v[p, k] = v[p, k] + gravity[k] * tau
         else:
             x[p, k] = x[p, k] + v[p, k] * tau
+
+
+@njit(cache=True, error_model='numpy')
+def _advance(particles, local_time, p, when, settings, tally):
+    """Move particle p on its free path to ``when``: ``_move``, or drag's closed form."""
+    if settings.has_drag:
+        tau = when - local_time[p]
+        local_time[p] = when
+        _advance_with_drag(particles, p, tau, settings, tally)
+    else:
+        _move(particles.position, particles.velocity, local_time, p, when, settings.gravity,
+              settings.has_gravity)
 
 
 @njit(cache=True, error_model='numpy')
@@ -652,11 +697,11 @@ def _record_pair(records, index, count, t, particles, i, j, normal, impulses):
 
 
 @njit(cache=True, inline='always')
-def _mark_changed(clock, p, n_changed):
+def _mark_changed(is_changed, changed, p, n_changed):
     """List particle p as changed in this round (once); return the count."""
-    if not clock.is_changed[p]:
-        clock.is_changed[p] = True
-        clock.changed[n_changed] = p
+    if not is_changed[p]:
+        is_changed[p] = True
+        changed[n_changed] = p
         n_changed += 1
     return n_changed
 
@@ -672,14 +717,19 @@ def _resolve_sequential(particles, own, settings, has_resting, pairs, clock, tal
     inv_mass, radius, dynamic = particles.inv_mass, particles.radius, particles.dynamic
     loss, totals, counts = tally.loss, tally.totals, tally.counts
     struck, touched = clock.struck, clock.touched
+    local_time, is_changed, changed = clock.local_time, clock.is_changed, clock.changed
+    gravity, has_gravity = settings.gravity, settings.has_gravity
     min_speed, planar = settings.min_speed, settings.dimensions == 2
     for k in np.sort(pairs.chosen[:n_chosen]):
         i, j = pairs.first[k], pairs.second[k]
         t = pairs.time[k]
-        if dynamic[i]:
-            _advance(particles, clock.local_time, i, t, settings, tally)
-        if dynamic[j]:
-            _advance(particles, clock.local_time, j, t, settings, tally)
+        for p in (i, j):
+            if not dynamic[p]:
+                continue
+            if settings.has_drag:
+                _advance(particles, local_time, p, t, settings, tally)
+            else:
+                _move(x, v, local_time, p, t, gravity, has_gravity)
         nx, ny, nz, _ = line_of_action(x[i, 0] - x[j, 0], x[i, 1] - x[j, 1], x[i, 2] - x[j, 2],
                                        v[i, 0] - v[j, 0], v[i, 1] - v[j, 1], v[i, 2] - v[j, 2])
         e = combined_coefficient(own.restitution, own.has_restitution, i, j,
@@ -690,8 +740,8 @@ def _resolve_sequential(particles, own, settings, has_resting, pairs, clock, tal
                 e = 0.0
         if has_resting and pairs.resting[k] and not (struck[i] or struck[j]):
             e = 0.0
-        n_changed = _mark_changed(clock, i, n_changed)
-        n_changed = _mark_changed(clock, j, n_changed)
+        n_changed = _mark_changed(is_changed, changed, i, n_changed)
+        n_changed = _mark_changed(is_changed, changed, j, n_changed)
         magnitude, approach, removed = pair_impulse(v, inv_mass, i, j, nx, ny, nz, e, 0.0)
         if not approach > 0.0:
             continue
@@ -735,11 +785,9 @@ def _resolve_batched(particles, own, settings, has_resting, pairs, clock, tally,
     min_speed = settings.min_speed
     order = np.sort(pairs.chosen[:n_chosen])
     for k in order:
-        i, j = pairs.first[k], pairs.second[k]
-        if dynamic[i]:
-            _advance(particles, clock.local_time, i, pairs.time[k], settings, tally)
-        if dynamic[j]:
-            _advance(particles, clock.local_time, j, pairs.time[k], settings, tally)
+        for p in (pairs.first[k], pairs.second[k]):
+            if dynamic[p]:
+                _advance(particles, clock.local_time, p, pairs.time[k], settings, tally)
     normals = np.empty((n_chosen, 3))
     restitution = np.empty(n_chosen)
     approach = np.empty(n_chosen)
@@ -801,8 +849,8 @@ def _resolve_batched(particles, own, settings, has_resting, pairs, clock, tally,
         totals[RESTITUTION] += removed
     for q in range(n_chosen):
         i, j = pairs.first[order[q]], pairs.second[order[q]]
-        n_changed = _mark_changed(clock, i, n_changed)
-        n_changed = _mark_changed(clock, j, n_changed)
+        n_changed = _mark_changed(clock.is_changed, clock.changed, i, n_changed)
+        n_changed = _mark_changed(clock.is_changed, clock.changed, j, n_changed)
         if not approach[q] > 0.0:
             continue
         counts[0] += 1
@@ -834,7 +882,7 @@ def _resolve_walls(particles, own, box, settings, candidates, clock, tally, n_hi
     for q in range(n_hits):
         p = clock.hits[q]
         _advance(particles, clock.local_time, p, clock.first_wall[p], settings, tally)
-        n_changed = _mark_changed(clock, p, n_changed)
+        n_changed = _mark_changed(clock.is_changed, clock.changed, p, n_changed)
     hit_order = np.sort(clock.hits[:n_hits])
     for axis in range(settings.dimensions):
         for column, plane, inward in ((2 * axis, box.low[axis], 1.0),
@@ -1135,9 +1183,8 @@ def sweep(particles, own, box, settings, candidates, escapes, tally, pairs, cloc
             n_pending = _predict_falling(0, m, False, round_, particles, pairs, clock, incident,
                                          settings, has_resting, 0)
         elif round_ == 0:
-            for k in range(m):
-                n_pending = _predict_pair(k, particles, pairs, clock, settings, has_resting,
-                                          n_pending)
+            n_pending = _predict_straight_pairs(0, m, False, round_, particles, pairs, clock,
+                                                incident, settings, has_resting, 0)
         if round_ == 0 and box.present:
             n_wall_due = _predict_all_walls(particles, clock, box, settings, has_resting,
                                             resting_wall)
@@ -1148,13 +1195,9 @@ def sweep(particles, own, box, settings, candidates, escapes, tally, pairs, cloc
                                              pairs, clock, incident, settings, has_resting,
                                              n_pending)
             else:
-                for slot in range(start[p], start[p + 1]):
-                    k = incident[slot]
-                    if pairs.seen[k] == round_:
-                        continue
-                    pairs.seen[k] = round_
-                    n_pending = _predict_pair(k, particles, pairs, clock, settings, has_resting,
-                                              n_pending)
+                n_pending = _predict_straight_pairs(start[p], start[p + 1], True, round_,
+                                                    particles, pairs, clock, incident, settings,
+                                                    has_resting, n_pending)
             if n_links:
                 n_pending = _predict_added_pairs(p, round_, particles, pairs, clock, incidence,
                                                  settings, has_resting, n_pending)
