@@ -394,23 +394,26 @@ def _keep_due(items, count, times, dt, listed):
 
 
 @njit(cache=True, error_model='numpy')
-def _predict_falling(first, last, use_keys, round_, particles, pairs, clock, keys, settings,
-                     has_resting, n_pending):
-    """Predict pairs again under gravity; list the due ones; return the pending count.
+def _predict_pairs(first, last, use_keys, round_, particles, pairs, clock, keys, settings,
+                   has_resting, n_pending):
+    """Predict pairs again; list the due ones; return the pending count.
 
     The pairs are ``keys[first:last]`` not yet seen in this round (a
     particle's incident pairs), or with ``use_keys`` False every pair in
-    ``range(first, last)``. As ``_predict_pair``, except that a resting
-    pair not yet touched and a pair ``_out_of_reach`` rejects get inf
-    without solving for a root (``pair_time`` would give them inf or a time
-    past dt, which the rounds treat alike). A loop of its own: through an
-    inlined per-pair function the test saved nothing.
+    ``range(first, last)``. Each gets ``pair_time`` with the scene's
+    gravity and threshold; a resting pair not yet touched, and under
+    gravity a pair ``_out_of_reach`` rejects, get inf without solving for
+    a root (``pair_time`` would give them inf or a time past dt, which the
+    rounds treat alike). A loop of its own with the records unpacked once:
+    through an inlined per-pair helper each pair cost a reference count per
+    array.
     """
     x, v, radius, dynamic = particles.position, particles.velocity, particles.radius, \
         particles.dynamic
     local_time, touched = clock.local_time, clock.touched
     first_of, second_of, resting, seen = pairs.first, pairs.second, pairs.resting, pairs.seen
     gravity, min_speed, dt = settings.gravity, settings.min_speed, settings.dt
+    has_gravity = settings.has_gravity
     for slot in range(first, last):
         k = slot
         if use_keys:
@@ -421,43 +424,16 @@ def _predict_falling(first, last, use_keys, round_, particles, pairs, clock, key
         i, j = first_of[k], second_of[k]
         if has_resting and resting[k] and not (touched[i] or touched[j]):
             t = np.inf
-        elif _out_of_reach(x, v, radius, local_time, dynamic, i, j, gravity, dt):
-            t = np.inf
-        else:
-            t = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, True, min_speed, dt)
-        n_pending = _list_if_due(k, t, dt, pairs.time, pairs.listed, pairs.pending, n_pending)
-    return n_pending
-
-
-@njit(cache=True, error_model='numpy')
-def _predict_straight_pairs(first, last, use_keys, round_, particles, pairs, clock, keys,
-                            settings, has_resting, n_pending):
-    """Predict pairs again on straight paths; list the due ones; return the pending count.
-
-    The pairs as ``_predict_falling`` takes them; each gets ``pair_time``
-    with the scene's threshold, and a resting pair not yet touched none.
-    The records are unpacked once for the loop: through an inlined per-pair
-    helper each pair cost a reference count per array.
-    """
-    x, v, radius, dynamic = particles.position, particles.velocity, particles.radius, \
-        particles.dynamic
-    local_time, touched = clock.local_time, clock.touched
-    first_of, second_of, resting, seen = pairs.first, pairs.second, pairs.resting, pairs.seen
-    gravity, min_speed, dt = settings.gravity, settings.min_speed, settings.dt
-    for slot in range(first, last):
-        k = slot
-        if use_keys:
-            k = keys[slot]
-            if seen[k] == round_:
-                continue
-            seen[k] = round_
-        i, j = first_of[k], second_of[k]
-        if min_speed > 0.0:
+        elif has_gravity:
+            if _out_of_reach(x, v, radius, local_time, dynamic, i, j, gravity, dt):
+                t = np.inf
+            else:
+                t = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, True, min_speed,
+                              dt)
+        elif min_speed > 0.0:
             t = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, False, min_speed, dt)
         else:
             t = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, False, 0.0, dt)
-        if has_resting and resting[k] and not (touched[i] or touched[j]):
-            t = np.inf
         n_pending = _list_if_due(k, t, dt, pairs.time, pairs.listed, pairs.pending, n_pending)
     return n_pending
 
@@ -1179,25 +1155,16 @@ def sweep(particles, own, box, settings, candidates, escapes, tally, pairs, cloc
         # (in the first round every pair, in pair order, then every particle).
         if round_ == 0 and not has_gravity and not min_speed > 0.0 and not has_resting:
             n_pending = _predict_straight(particles, pairs, clock, m, settings)
-        elif round_ == 0 and has_gravity:
-            n_pending = _predict_falling(0, m, False, round_, particles, pairs, clock, incident,
-                                         settings, has_resting, 0)
         elif round_ == 0:
-            n_pending = _predict_straight_pairs(0, m, False, round_, particles, pairs, clock,
-                                                incident, settings, has_resting, 0)
+            n_pending = _predict_pairs(0, m, False, round_, particles, pairs, clock, incident,
+                                       settings, has_resting, 0)
         if round_ == 0 and box.present:
             n_wall_due = _predict_all_walls(particles, clock, box, settings, has_resting,
                                             resting_wall)
         for c in range(n_changed):
             p = clock.changed[c]
-            if has_gravity:
-                n_pending = _predict_falling(start[p], start[p + 1], True, round_, particles,
-                                             pairs, clock, incident, settings, has_resting,
-                                             n_pending)
-            else:
-                n_pending = _predict_straight_pairs(start[p], start[p + 1], True, round_,
-                                                    particles, pairs, clock, incident, settings,
-                                                    has_resting, n_pending)
+            n_pending = _predict_pairs(start[p], start[p + 1], True, round_, particles, pairs,
+                                       clock, incident, settings, has_resting, n_pending)
             if n_links:
                 n_pending = _predict_added_pairs(p, round_, particles, pairs, clock, incidence,
                                                  settings, has_resting, n_pending)
