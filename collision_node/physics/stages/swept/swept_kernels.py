@@ -1041,7 +1041,7 @@ def _requery(particles, clock, escapes, settings, pairs, incidence, n_pairs, n_l
         reach[p] = own + radius[p]
         escaped[p] = True
     keys = np.empty(64, dtype=np.int64)
-    n_keys = 0
+    n_keys = np.int64(0)
     for q in range(n_fresh):
         p = fresh[q]
         mx, my, mz, own = middle[p, 0], middle[p, 1], middle[p, 2], reach[p]
@@ -1140,14 +1140,16 @@ def sweep(particles, own, box, settings, candidates, escapes, tally, pairs, cloc
         for p in (pairs.first[k], pairs.second[k]):
             incident[fill[p]] = k
             fill[p] += 1
-    n_pairs, n_links = m, 0
+    # Counts start as np.int64(0), not the literal 0: a literal argument
+    # makes numba compile each helper it is passed to a second time.
+    n_pairs, n_links = m, np.int64(0)
     # Particles changed in the last round (the first round predicts every
     # pair and particle instead); pending pairs (time <= dt) and particles
     # with a pending wall impact.
-    n_changed = n_pending = n_wall_due = 0
+    n_changed = n_pending = n_wall_due = np.int64(0)
     records = np.empty((16, RECORD_WIDTH))
     index = np.empty((16, 2), dtype=np.int64)
-    count = 0
+    count = np.int64(0)
     rounds_run = 0
     for round_ in range(settings.rounds):
         rounds_run += 1
@@ -1156,8 +1158,8 @@ def sweep(particles, own, box, settings, candidates, escapes, tally, pairs, cloc
         if round_ == 0 and not has_gravity and not min_speed > 0.0 and not has_resting:
             n_pending = _predict_straight(particles, pairs, clock, m, settings)
         elif round_ == 0:
-            n_pending = _predict_pairs(0, m, False, round_, particles, pairs, clock, incident,
-                                       settings, has_resting, 0)
+            n_pending = _predict_pairs(np.int64(0), m, False, round_, particles, pairs, clock,
+                                       incident, settings, has_resting, np.int64(0))
         if round_ == 0 and box.present:
             n_wall_due = _predict_all_walls(particles, clock, box, settings, has_resting,
                                             resting_wall)
@@ -1179,7 +1181,7 @@ def sweep(particles, own, box, settings, candidates, escapes, tally, pairs, cloc
                                                 resting_wall, n_wall_due)
         for c in range(n_changed):
             clock.is_changed[clock.changed[c]] = False
-        n_changed = 0
+        n_changed = np.int64(0)
         # Drop what is no longer due.
         n_pending = _keep_due(pairs.pending, n_pending, pairs.time, dt, pairs.listed)
         n_wall_due = _keep_due(clock.wall_due, n_wall_due, clock.first_wall, dt,
@@ -1200,7 +1202,7 @@ def sweep(particles, own, box, settings, candidates, escapes, tally, pairs, cloc
         # Sequential: the pairs first at both particles; batched: every pair at
         # both particles' earliest time. A static particle never has to wait
         # its turn (it never changes); a wall impact as early goes first.
-        n_chosen = 0
+        n_chosen = np.int64(0)
         for q in range(n_pending):
             k = pairs.pending[q]
             i, j = pairs.first[k], pairs.second[k]
@@ -1213,7 +1215,7 @@ def sweep(particles, own, box, settings, candidates, escapes, tally, pairs, cloc
                     and t < clock.first_wall[i] and t < clock.first_wall[j]:
                 pairs.chosen[n_chosen] = k
                 n_chosen += 1
-        n_hits = 0
+        n_hits = np.int64(0)
         for q in range(n_wall_due):
             p = clock.wall_due[q]
             earliest = best_time[p] if best_round[p] == round_ else np.inf
