@@ -621,25 +621,20 @@ def _advance_with_drag(particles, p, tau, settings, tally):
 def _advance_all(particles, local_time, when, settings, tally):
     """Move every dynamic particle on its free path to ``when`` (``_advance`` for each).
 
-    One loop over plain arrays: ``_advance`` inlined in a loop over 10,000
-    particles takes the records' arrays' reference counts at every particle.
+    One loop with the records unpacked once: ``_advance`` per particle would
+    be a call, or inlined, take the records' reference counts per particle.
     """
     x, v, dynamic, gravity = particles.position, particles.velocity, particles.dynamic, \
         settings.gravity
     for p in range(x.shape[0]):
         if not dynamic[p]:
             continue
-        tau = when - local_time[p]
-        local_time[p] = when
         if settings.has_drag:
+            tau = when - local_time[p]
+            local_time[p] = when
             _advance_with_drag(particles, p, tau, settings, tally)
-        elif settings.has_gravity:
-            for k in range(3):
-                x[p, k] = x[p, k] + v[p, k] * tau + 0.5 * gravity[k] * tau * tau
-                v[p, k] = v[p, k] + gravity[k] * tau
         else:
-            for k in range(3):
-                x[p, k] = x[p, k] + v[p, k] * tau
+            _move(x, v, local_time, p, when, gravity, settings.has_gravity)
 
 
 @njit(cache=True)
