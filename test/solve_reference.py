@@ -16,14 +16,13 @@ from typing import Optional
 
 import numpy as np
 
-from oracles.contact_law import (apply_impulses, apply_pair_friction,
-                                 apply_pair_impulses, apply_wall_friction,
+from oracles.contact_law import (apply_pair_friction, apply_pair_impulses, apply_wall_friction,
                                  apply_wall_impulses, pair_coefficient,
                                  reflect_on_plane, wall_coefficient)
 from oracles.impulse import closing_speed
 from collision_node.physics.model.impacts import record_pairs, record_walls
-from collision_node.physics.model.tunables import (RESIDUAL_FRACTION, SHOCK_PASSES,
-                                                   STRIKE_FACTOR, WALL_SLOP, WALL_ULPS)
+from collision_node.physics.model.tunables import (RESIDUAL_FRACTION, STRIKE_FACTOR,
+                                                   WALL_SLOP, WALL_ULPS)
 from collision_node.physics.stages.solve.batched_impulses import (BatchedImpulseStage,
                                                                   shared_scale)
 from collision_node.physics.stages.solve.contact_kernels import MAX_CACHED_ID, WarmStartCache
@@ -151,7 +150,6 @@ class SequentialReference(SequentialImpulseStage):
             mu = pair_coefficient(state.friction, i, j, self.friction)
         mu_per_pair = np.ndim(mu) > 0
         planar = ctx.dimensions == 2
-        shock = self.gravity is not None and threshold > 0.0
         tolerance = RESIDUAL_FRACTION * threshold
         struck = impact = None
         if threshold > 0.0:
@@ -204,18 +202,6 @@ class SequentialReference(SequentialImpulseStage):
             # contact is resolved: skip the checking sweep.
             if not applied or (len(batches) == 1 and not walls):
                 break
-        if shock and len(contacts):
-            # Walls are the bottom of every pile: solve them first and after each pass.
-            for wall in walls:
-                wall.solve(ctx, 0.0, planar, struck)
-            for _ in range(SHOCK_PASSES):
-                pushed = self._shock_pass(ctx, i, j, normal, self.gravity, threshold, 0.0)
-                for wall in walls:
-                    wall.solve(ctx, 0.0, planar, struck)
-                if pushed is None:
-                    break
-                if record:
-                    summed_normal += pushed
         ctx.stats.collisions += int(hit.sum())
         ctx.stats.wall_collisions += int(sum(int(w.hit.sum()) for w in walls))
         if record:
@@ -225,47 +211,6 @@ class SequentialReference(SequentialImpulseStage):
                          summed_tangential[pushed], np.maximum(approach0[pushed], 0.0))
             for wall in walls:
                 wall.record(ctx)
-
-    @staticmethod
-    def _shock_pass(ctx: StepContext, i: np.ndarray, j: np.ndarray, normal: np.ndarray,
-                    gravity: np.ndarray, threshold: float, tolerance: float
-                    ) -> Optional[np.ndarray]:
-        """Stop resting contacts from the ground up; return the impulse per contact.
-
-        Pairs ordered by the height of their lower particle along -g treat
-        the lower particle as immovable and stop the upper one's approach
-        (e = 0), never faster than 0 along N; only pairs closing slower than
-        the threshold. Returns None when no pair needed it.
-        """
-        state = ctx.state
-        origin = state.position[i[0]]
-        height = -((state.position - origin) @ gravity)
-        i_lower = height[i] <= height[j]
-        order = np.argsort(np.where(i_lower, height[i], height[j]), kind='stable')
-        i, j, normal, i_lower = i[order], j[order], normal[order], i_lower[order]
-        lower = np.where(i_lower, i, j)
-        upper = np.where(i_lower, j, i)
-        outward = np.where(i_lower[:, None], -normal, normal)    # lower -> upper
-        batches = solve_order(i, j, state.dynamic)
-        pushed = None
-        dynamic = state.dynamic
-        for batch in batches:
-            up, n_out = upper[batch], outward[batch]
-            u_upper = np.einsum('ij,ij->i', state.velocity[up], n_out)
-            u_lower = np.einsum('ij,ij->i', state.velocity[lower[batch]], n_out)
-            target = np.minimum(u_lower, 0.0)
-            resting = ((u_upper < target - tolerance) & (u_lower - u_upper < threshold)
-                       & dynamic[up])
-            if not resting.any():
-                continue
-            magnitude = (target - u_upper)[resting] / state.inv_mass[up[resting]]
-            particles, removed = apply_impulses(state.velocity, state.inv_mass, up[resting],
-                                                magnitude[:, None] * n_out[resting])
-            ctx.book('restitution', removed, particles)
-            if pushed is None:
-                pushed = np.zeros(i.size)
-            pushed[order[batch[resting]]] += magnitude
-        return pushed
 
 
 class WallReference(WallStage):

@@ -145,21 +145,24 @@ def test_compiled_separation_equals_numpy_on_random_overlaps(dims, gravity, wall
     assert moved.sum() > 30                              # the projection did work
     assert_same_outcome(ref, new)
     if gravity:
-        # Some lift was paid from speed, some by the losses, and the rest not made.
+        # Some lift was paid from speed, some by the losses, and the rest not made
+        # (from speed only where walls lift: pairs of dynamic particles keep their
+        # centre of mass).
         assert ref.stats.dissipated['separation'] != 0.0
-        assert np.any(ref.state.velocity != state.velocity)
-        assert_lift_within_budget(state, ref, contacts, losses)
+        assert np.any(ref.state.velocity != state.velocity) or not walls
+        assert_lift_within_budget(state, ref, contacts, losses, exercised=walls)
 
 
 def assert_lift_within_budget(before: ParticleState, ctx: StepContext, contacts,
-                              losses: np.ndarray) -> None:
+                              losses: np.ndarray, exercised: bool = True) -> None:
     """Assert the separation added no energy beyond each cluster's losses.
 
     Per cluster of touching dynamic particles, the kinetic plus potential
     energy the stage added is at most the cluster's losses (0 if negative),
     to round-off; the booking (a negative loss) is that addition exactly.
-    Some cluster must have had a lift its budget and speed could not pay
-    (so the rule that moves particles back was exercised).
+    With ``exercised``, some cluster must have had a lift its budget and
+    speed could not pay (so the rule that moves particles back was
+    exercised); without walls only static particles lift.
     """
     s = ctx.state
     mass = np.where(s.inv_mass > 0.0, 1.0 / np.where(s.inv_mass > 0.0, s.inv_mass, 1.0), 0.0)
@@ -178,7 +181,7 @@ def assert_lift_within_budget(before: ParticleState, ctx: StepContext, contacts,
     SeparationOracle(walls=ctx.effects.walls)._project(projected, True)
     lifted = -mass * ((projected.state.position - before.position) @ GRAVITY)
     over = np.bincount(cluster, weights=lifted, minlength=count) > budget + 1e-9
-    assert over.any()
+    assert over.any() or not exercised
 
 
 def test_compiled_separation_holds_particles_at_walls_like_numpy():
@@ -224,7 +227,7 @@ def test_compiled_stages_equal_numpy_at_every_step_of_the_pile():
 
     for k, stage in enumerate(stages):
         if isinstance(stage, NarrowphaseStage):
-            stages[k] = Both(stage, NarrowphaseOracle())
+            stages[k] = Both(stage, NarrowphaseOracle(stage.speculative, stage.impacts))
         elif isinstance(stage, SeparationStage):
             stages[k] = Both(stage, SeparationOracle(walls=stage.walls))
     world.step(240)

@@ -59,11 +59,12 @@ def sweeps_per_step(world: World, steps: int) -> list[int]:
 
 
 def test_resting_pile_converges_in_few_sweeps_with_warm_starting():
-    # Measured: warm 6 sweeps a step once settled (mean of steps 120-240); cold
-    # never gets below the tolerance and runs all 64 of them at every step.
+    # Measured: warm 14 sweeps a step once settled (mean of steps 120-240; the
+    # sweeps alone hold the pile, without passes after them); cold never gets
+    # below the tolerance and runs all 64 of them at every step.
     warm = sweeps_per_step(packed_pile(True), 240)
     cold = sweeps_per_step(packed_pile(False), 240)
-    assert np.mean(warm[120:]) <= 10
+    assert np.mean(warm[120:]) <= 16
     assert max(warm[200:]) < 64                          # stops before its budget
     assert min(cold[120:]) == 64
     assert len(solver_of(packed_pile(True)).cache) == 0  # a new world starts cold

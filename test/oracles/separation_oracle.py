@@ -112,11 +112,16 @@ class SeparationOracle(SeparationStage):
         """Run the projection passes and wall clamps (numpy)."""
         s, c = ctx.state, ctx.contacts
         held_by = self.walls if hold else None
+        if passes > 1:
+            self._project_in_turn(ctx, has_pairs, passes, held_by)
+            return
         for k in range(passes):
             if has_pairs:
                 if k == 0:
-                    normal, penetration = c.normal, c.penetration
-                    i, j = c.i, c.j
+                    # Speculative contacts (negative penetration) are not pushed.
+                    overlapping = c.penetration > 0.0
+                    normal, penetration = c.normal[overlapping], c.penetration[overlapping]
+                    i, j = c.i[overlapping], c.j[overlapping]
                 else:
                     normal, distance = line_of_action(s.position[c.i] - s.position[c.j],
                                                       s.velocity[c.i] - s.velocity[c.j])
@@ -129,6 +134,38 @@ class SeparationOracle(SeparationStage):
                 separate(s.position, s.inv_mass, i, j, normal, penetration, s.radius,
                          held_by, ctx.dimensions)
             self._clamp_inside_walls(ctx)
+
+    def _project_in_turn(self, ctx: StepContext, has_pairs: bool, passes: int,
+                         held_by: Optional[Walls]) -> None:
+        """Gauss-Seidel passes: pair after pair from the positions as they are, then walls."""
+        s, c = ctx.state, ctx.contacts
+        for _ in range(passes):
+            overlapped = False
+            for k in range(len(c) if has_pairs else 0):
+                a, b = c.i[k:k + 1], c.j[k:k + 1]
+                normal, distance = line_of_action(s.position[a] - s.position[b],
+                                                  s.velocity[a] - s.velocity[b])
+                depth = s.radius[a] + s.radius[b] - distance
+                if not depth[0] > 0.0:
+                    continue
+                overlapped = True
+                w_a, w_b = s.inv_mass[a], s.inv_mass[b]
+                if held_by is not None:
+                    share = (depth / (w_a + w_b))[:, None] * normal
+                    held_a = held_by_walls(s.position[a] + w_a[:, None] * share, s.radius[a],
+                                           normal, held_by, ctx.dimensions)
+                    held_b = held_by_walls(s.position[b] - w_b[:, None] * share, s.radius[b],
+                                           -normal, held_by, ctx.dimensions)
+                    w_a, w_b = (np.where(held_a & ~held_b & (w_b > 0.0), 0.0, w_a),
+                                np.where(held_b & ~held_a & (w_a > 0.0), 0.0, w_b))
+                w_sum = w_a + w_b
+                if not w_sum[0] > 0.0:
+                    continue
+                s.position[a] += (depth * w_a / w_sum)[:, None] * normal
+                s.position[b] += -((depth * w_b / w_sum)[:, None] * normal)
+            self._clamp_inside_walls(ctx)
+            if not overlapped:
+                break
 
     def _clamp_inside_walls(self, ctx: StepContext) -> None:
         """Place particles found past a wall plane back on it."""

@@ -1,13 +1,13 @@
 """The contact law, compiled: the small functions every kernel calls for one contact.
 
 Pair and wall impulses with inverse masses, the combine rule, Coulomb
-friction with spin, the line of action, and the energy each impulse
-removes, booked per particle. Every solver and preset calls these; none
-re-derives them. Friction helpers take the particle arrays (velocity,
-spin, inverse mass, radius) and a contact's normal, impulse and spin
-factors as 3- and 2-tuples (the same floating-point operations as scalar
-arguments). A ``Bodies`` record is unpacked by the caller once, outside its
-loop: a record handed to an inlined helper costs numba a reference count
+friction with spin, the line of action, a speculative contact's allowance,
+and the energy each impulse removes, booked per particle. Every solver and
+preset calls these; none re-derives them. Friction helpers take the particle
+arrays (velocity, spin, inverse mass, radius) and a contact's normal, impulse
+and spin factors as 3- and 2-tuples (the same floating-point operations as
+scalar arguments). A ``Bodies`` record is unpacked by the caller once, outside
+its loop: a record handed to an inlined helper costs numba a reference count
 per array at every contact.
 """
 
@@ -51,6 +51,18 @@ def dot3(ax, ay, az, bx, by, bz):
     vectorised law (measured on numpy 2.4: (x + z) + y on every row).
     """
     return (ax * bx + az * bz) + ay * by
+
+
+@njit(cache=True, inline='always')
+def closing_allowance(gap, dt):
+    """Return the closing speed a contact ``gap`` m apart may keep for a step of ``dt``, m/s.
+
+    A speculative contact (found before it touches, gap > 0) may close by
+    its gap in the next drift and no more: v_n >= -gap / dt, so it touches
+    at the step's end instead of overlapping. A touching or overlapping one
+    (gap <= 0) may not close at all: v_n >= 0, the law's impulse with e.
+    """
+    return gap / dt if gap > 0.0 else 0.0
 
 
 @njit(cache=True, nogil=True)

@@ -24,10 +24,16 @@ RESIDUAL_FRACTION = 1.0e-3
 # 9.81 m/s^2) onto resting balls is not passed on through them.
 STRIKE_FACTOR = 10.0
 
-# Passes of shock propagation at most (a particle resting on two others
-# needs a few: stopping it against one support can make it approach the
-# other).
-SHOCK_PASSES = 8
+# Speculative contacts, fraction of a radius (default 0.02). Under a
+# restitution threshold a pair enters the step-end contact solve while its
+# gap is below the distance it closes in a step at the threshold speed
+# (threshold x dt, m) plus this fraction of the mean of its two radii (a
+# particle and a wall plane: of its radius), and the solve lets it close by
+# at most its gap in the next step (v_n >= -gap / dt), so resting contact
+# is held before it overlaps. The margin catches pairs the solve's own
+# impulses set closing. Larger: more contacts per step (each a dot product
+# per sweep); 0: only contacts within threshold x dt.
+SPECULATIVE_MARGIN = 0.02
 
 # A particle within this fraction of its radius, plus WALL_ULPS floating-point
 # spacings at the plane's coordinate, of a wall plane touches it (the walls

@@ -33,7 +33,7 @@ def needs_contact_solve(effects: Effects) -> bool:
     contact is an impact the ccd stage resolves at its time of impact.
     With any of them, contacts closing slower than the restitution
     threshold are resting contact, which the ccd stage leaves to the
-    sequential solve (threshold, shock passes, friction) at the step end.
+    sequential solve (threshold, speculative contacts, friction) at the step end.
     """
     return not (effects.gravity is None and effects.drag is None and effects.friction is None
                 and effects.restitution_threshold is None)
@@ -91,7 +91,13 @@ def _build(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
         solver = SequentialImpulseStage(effects.particle_restitution, accuracy.iterations,
                                         friction=effects.friction, walls=effects.walls,
                                         gravity=effects.gravity)
-    stages += [BroadphaseStage(), NarrowphaseStage(), solver,
+    # Speculative contacts (under a restitution threshold) for the sequential solve;
+    # without a swept stage impacts are found before they overlap too.
+    speculative = isinstance(solver, SequentialImpulseStage)
+    if speculative:
+        solver.early_impacts = True
+    stages += [BroadphaseStage(speculative, impacts=speculative),
+               NarrowphaseStage(speculative, impacts=speculative), solver,
                SeparationStage(walls=effects.walls)]
     return Pipeline(stages, note='; '.join(notes))
 
@@ -103,7 +109,7 @@ def _swept_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
     closed form with drag (see ``swept_contacts``). With gravity, drag,
     friction or a threshold, contacts slower than the restitution threshold
     are resting contact: the walls stage, the sequential solve (threshold,
-    shock passes, friction) and separation take them at the step end.
+    speculative contacts, friction) and separation take them at the step end.
     """
     notes = []
     ordering = accuracy.ordering
@@ -130,7 +136,7 @@ def _swept_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
     # A fresh candidate search at the step end (as in discrete detection):
     # it also finds the overlaps of particles an impact sent beyond the
     # swept stage's list, and gives the solve the discrete pipeline's order.
-    stages += [BroadphaseStage(), NarrowphaseStage(),
+    stages += [BroadphaseStage(speculative=True), NarrowphaseStage(speculative=True),
                SequentialImpulseStage(effects.particle_restitution, accuracy.iterations,
                                       friction=effects.friction, walls=effects.walls,
                                       gravity=effects.gravity),

@@ -9,9 +9,15 @@ velocity, is not used: it is how an elastic gas gains energy without bound.
 
 Without gravity there is one pass, and a particle that its push would take
 into a wall stays put while its partner takes the whole push (the wall
-clamp would otherwise put it back and leave the overlap). Under gravity the
-pass is repeated (``GRAVITY_PASSES``) on the pairs still overlapping. After
-each pass, particles past a wall plane are placed back on it.
+clamp would otherwise put it back and leave the overlap). Under gravity
+there are up to ``GRAVITY_PASSES`` Gauss-Seidel passes instead: pair after
+pair, each from the positions as the previous pushes left them, so a push
+travels up a stack in one pass; two dynamic particles move by
+m_a dx_a = -m_b dx_b, so the centre of mass of a cluster that no wall or
+static particle supports never moves (no lift, no velocity paid: its
+momentum is untouched). Only pairs that overlap are pushed (speculative
+contacts, found before they touch, have a gap instead). After each pass,
+particles past a wall plane are placed back on it.
 
 Under gravity, moving a particle changes its potential energy. Pushes
 between two dynamic particles leave the total potential unchanged; a push
@@ -108,9 +114,9 @@ class SeparationStage(Stage):
         """Separate overlapping pairs, then clamp particles inside the walls.
 
         Under gravity a resting pile sinks a little into itself every step
-        and one averaged pass only removes part of it, so the pass is
-        repeated (``GRAVITY_PASSES``) on the step's contact pairs with their
-        overlap measured again.
+        (where the walls stage put its lowest particles back on the floor),
+        so up to ``GRAVITY_PASSES`` Gauss-Seidel passes run on the step's
+        contact pairs, their overlap measured again at each pair.
         """
         passes = 1 if ctx.effects.gravity is None else GRAVITY_PASSES
         # One pass: a particle its push would take into a wall is held there (see the
@@ -122,7 +128,11 @@ class SeparationStage(Stage):
 
     def _project_passes(self, ctx: StepContext, has_pairs: bool, passes: int,
                         hold: bool) -> None:
-        """Run ``passes`` projection passes and wall clamps in one compiled call."""
+        """Run ``passes`` projection passes and wall clamps in one compiled call.
+
+        More than one pass (under gravity): Gauss-Seidel passes (see the
+        module docstring).
+        """
         s, c = ctx.state, ctx.contacts
         if has_pairs:
             contacts = ContactArrays(np.ascontiguousarray(c.i, dtype=np.int64),
@@ -133,7 +143,7 @@ class SeparationStage(Stage):
             contacts = ContactArrays(_NO_PAIRS, _NO_PAIRS, np.zeros((0, 3)), np.zeros(0))
         particles = particle_arrays(s)
         project_overlaps(particles, np.ascontiguousarray(s.dynamic, dtype=np.bool_), contacts,
-                         self._wall_bounds(ctx.dimensions), passes, hold)
+                         self._wall_bounds(ctx.dimensions), passes, hold, passes > 1)
         if particles.position is not s.position:
             s.position[...] = particles.position
 
@@ -156,7 +166,8 @@ class SeparationStage(Stage):
     def describe(self) -> str:
         """Say what the stage does."""
         text = ('position projection along N shared by inverse mass (velocities untouched; '
-                f'under gravity {GRAVITY_PASSES} passes, and a lift beyond the step\'s losses '
+                f'under gravity up to {GRAVITY_PASSES} Gauss-Seidel passes, pair after pair, '
+                'and a lift beyond the step\'s losses '
                 'is paid from the lifted particles\' speed, or not made)')
         if self.walls is not None:
             text += ', then back onto wall planes'

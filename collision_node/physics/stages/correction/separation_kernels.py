@@ -114,6 +114,53 @@ def _separate_pass(particles, contacts, active, hold, walls, work):
 
 
 @njit(cache=True)
+def _separate_in_turn(particles, contacts, hold, walls):
+    """One Gauss-Seidel projection pass: each pair in order, from the positions as they are.
+
+    Each overlapping pair is pushed apart along its current line of action
+    by its overlap, shared by inverse mass (``hold``: a particle its push
+    would take into a wall stays put and its partner takes the whole push).
+    Two dynamic particles move by m_a dx_a = -m_b dx_b: their centre of mass
+    stays, so no pass lifts a cluster that neither a wall nor a static
+    particle supports. Returns whether any pair overlapped.
+    """
+    position, velocity, radius = particles.position, particles.velocity, particles.radius
+    inv_mass = particles.inv_mass
+    pair_first, pair_second = contacts.first, contacts.second
+    any_overlap = False
+    for k in range(pair_first.size):
+        a, b = pair_first[k], pair_second[k]
+        nx, ny, nz, distance = line_of_action(
+            position[a, 0] - position[b, 0], position[a, 1] - position[b, 1],
+            position[a, 2] - position[b, 2], velocity[a, 0] - velocity[b, 0],
+            velocity[a, 1] - velocity[b, 1], velocity[a, 2] - velocity[b, 2])
+        depth = radius[a] + radius[b] - distance
+        if not depth > 0.0:
+            continue
+        any_overlap = True
+        w_a, w_b = inv_mass[a], inv_mass[b]
+        if hold:
+            share = depth / (w_a + w_b)
+            sx, sy, sz = share * nx, share * ny, share * nz
+            held_a = _held(particles, a, (w_a * sx, w_a * sy, w_a * sz), (nx, ny, nz), walls)
+            held_b = _held(particles, b, (-(w_b * sx), -(w_b * sy), -(w_b * sz)),
+                           (-nx, -ny, -nz), walls)
+            w_a, w_b = (0.0 if (held_a and not held_b and w_b > 0.0) else w_a,
+                        0.0 if (held_b and not held_a and w_a > 0.0) else w_b)
+        w_sum = w_a + w_b
+        if not w_sum > 0.0:
+            continue
+        push_a, push_b = depth * w_a / w_sum, depth * w_b / w_sum
+        position[a, 0] += push_a * nx
+        position[a, 1] += push_a * ny
+        position[a, 2] += push_a * nz
+        position[b, 0] += -(push_b * nx)
+        position[b, 1] += -(push_b * ny)
+        position[b, 2] += -(push_b * nz)
+    return any_overlap
+
+
+@njit(cache=True)
 def _clamp_inside(particles, dynamic, walls):
     """Place dynamic particles found past a wall plane back on it, plane after plane."""
     position, radius = particles.position, particles.radius
@@ -125,21 +172,34 @@ def _clamp_inside(particles, dynamic, walls):
 
 
 @njit(cache=True, nogil=True)
-def project_overlaps(particles, dynamic, contacts, walls, passes, hold):
+def project_overlaps(particles, dynamic, contacts, walls, passes, hold, in_turn):
     """Run the separation stage's projection on ``particles.position`` in place.
 
     ``passes`` Jacobi passes: the first on the narrowphase's normals and
-    penetrations, each later one on the pairs still overlapping, measured
+    penetrations (the pairs that overlap: speculative ones have a negative
+    penetration), each later one on the pairs still overlapping, measured
     again; with walls present the particles are clamped back inside after
-    each pass. ``hold``: a particle its push would take into a wall stays put.
+    each pass. ``hold``: a particle its push would take into a wall stays
+    put. ``in_turn``: Gauss-Seidel passes instead (``_separate_in_turn``),
+    stopping early once no pair overlaps.
     """
     position, velocity, radius = particles.position, particles.velocity, particles.radius
     pair_first, pair_second = contacts.first, contacts.second
     n, m = position.shape[0], pair_first.size
+    if in_turn:
+        for _ in range(passes):
+            overlapped = _separate_in_turn(particles, contacts, hold, walls) if m else False
+            if walls.present:
+                _clamp_inside(particles, dynamic, walls)
+            if not overlapped:
+                break
+        return
     current = ContactArrays(pair_first, pair_second, contacts.normal.copy(),
                             contacts.penetration.copy())
     normal, penetration = current.normal, current.penetration
-    active = np.ones(m, dtype=np.bool_)
+    active = np.empty(m, dtype=np.bool_)
+    for k in range(m):
+        active[k] = penetration[k] > 0.0
     work = ProjectionWork(np.zeros((m, 2)), np.zeros((n, 3)), np.zeros(n))
     for step in range(passes):
         if m:
@@ -241,7 +301,8 @@ def warm_up() -> None:
     walls = WallBounds(True, np.full(3, -10.0), np.full(3, 10.0), 3,
                        np.zeros(1, dtype=np.int64), np.full(1, -10.0), np.ones(1))
     start = particles.position.copy()
-    project_overlaps(particles, dynamic, contacts, walls, 2, True)
+    for in_turn in (False, True):
+        project_overlaps(particles, dynamic, contacts, walls, 2, True, in_turn)
     pay_for_lift(particles, dynamic, pair_first, pair_second, start, np.ones(2), np.zeros(2))
 
 

@@ -42,7 +42,7 @@ from ...step.pipeline import Stage, StepContext
 from ...model.validation import SceneError
 from ...model.tunables import (CLASS_RATIO, SKIN_STEPS, SKIN_MAX_RADII, SKIN_MIN_RADII,
                                MAX_MOVER_SHARE, ALL_PAIRS_UP_TO, STEP_MEMORY_BUDGET, PAIR_BYTES,
-                               MAX_PATH_TESTS)
+                               MAX_PATH_TESTS, SPECULATIVE_MARGIN)
 
 # The pair test |p_i - p_j|^2 <= (reach_i + reach_j)^2 (1 + QUERY_SLACK) is a
 # little generous, so that rounding never drops a pair; the grid's cell
@@ -240,8 +240,16 @@ class BroadphaseStage(Stage):
 
     name = 'broadphase'
 
-    def __init__(self) -> None:
-        """Start without a list; the first step searches."""
+    def __init__(self, speculative: bool = False, impacts: bool = False) -> None:
+        """Start without a list; the first step searches.
+
+        ``speculative``: under a restitution threshold the pairs reach as far
+        as the narrowphase's speculative contacts (``NarrowphaseStage``);
+        ``impacts``: and as far as each particle moves in a step, |v| dt.
+        """
+        self.speculative = speculative
+        self.impacts = impacts
+        self._extra_floor = 0.0        # the largest allowance asked for (keeps the skin wider)
         self._search: Optional[PairSearch] = None
         self._keys = _EMPTY            # sorted i * n + j of the listed pairs
         self._built_position: Optional[np.ndarray] = None
@@ -259,8 +267,17 @@ class BroadphaseStage(Stage):
     def run(self, ctx: StepContext) -> None:
         """Store candidate pairs on the context."""
         state = ctx.state
+        extra = None
+        if self.speculative:
+            threshold = float(ctx.effects.threshold(ctx.dt))
+            if threshold > 0.0:
+                # Half of each pair's speculative distance on each side.
+                extra = 0.5 * (threshold * ctx.dt + SPECULATIVE_MARGIN * state.radius)
+                if self.impacts:
+                    extra = extra + ctx.dt * np.sqrt(
+                        np.einsum('ij,ij->i', state.velocity, state.velocity))
         ctx.pair_i, ctx.pair_j = self.find(state.position, state.radius, state.velocity,
-                                           state.inv_mass, ctx.dt)
+                                           state.inv_mass, ctx.dt, extra)
 
     def find(self, position: np.ndarray, radius: np.ndarray, velocity: np.ndarray,
              inv_mass: np.ndarray, dt: float, extra: Optional[np.ndarray] = None
@@ -284,6 +301,8 @@ class BroadphaseStage(Stage):
             return self._all_pairs
         if extra is None:
             extra = np.zeros(n)
+        elif extra.size:
+            self._extra_floor = float(np.max(extra))
         if self._direct and self._list_matches(position, radius):
             # Allowances outgrew the skin last step: search directly until
             # they fit again, instead of rebuilding a list nobody can reuse.
@@ -335,6 +354,9 @@ class BroadphaseStage(Stage):
             if dynamic.any() else 0.0
         skin = min(SKIN_MAX_RADII * median_radius,
                    max(SKIN_STEPS * dt * rms_speed, SKIN_MIN_RADII * median_radius))
+        # Wide enough that a standing allowance (speculative contacts) leaves
+        # room for displacement before particles count as movers.
+        skin = max(skin, 4.0 * self._extra_floor)
         self._half_skin = 0.5 * skin
         self._search = search_pairs(position, radius + self._half_skin)
         self._keys = self._search.i * n + self._search.j

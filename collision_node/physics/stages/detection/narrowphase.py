@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from .narrowphase_kernels import find_overlaps
+from ...model.tunables import SPECULATIVE_MARGIN
 from ...step.pipeline import Contacts, Stage, StepContext
 from ...step.step_kernels import ParticleArrays
 
@@ -50,8 +51,14 @@ def line_of_action(offset: np.ndarray, relative_velocity: np.ndarray
 
 
 def find_contacts(position: np.ndarray, velocity: np.ndarray, radius: np.ndarray,
-                  inv_mass: np.ndarray, first: np.ndarray, second: np.ndarray) -> Contacts:
-    """Return the overlapping pairs among candidates (first, second), one compiled pass."""
+                  inv_mass: np.ndarray, first: np.ndarray, second: np.ndarray,
+                  ahead: float = 0.0, margin: float = 0.0, sweep: float = 0.0) -> Contacts:
+    """Return the overlapping pairs among candidates (first, second), one compiled pass.
+
+    With ``ahead`` (m) or ``margin`` (of the mean radius) also the pairs
+    within that gap (speculative contacts, negative penetration), with
+    ``sweep`` (s) also those within (|v_i| + |v_j|) sweep.
+    """
     if first.shape[0] == 0:
         return Contacts.empty()
     particles = ParticleArrays(np.ascontiguousarray(position, dtype=float),
@@ -59,7 +66,8 @@ def find_contacts(position: np.ndarray, velocity: np.ndarray, radius: np.ndarray
                                np.ascontiguousarray(radius, dtype=float),
                                np.ascontiguousarray(inv_mass, dtype=float))
     found = find_overlaps(particles, np.ascontiguousarray(first, dtype=np.int64),
-                          np.ascontiguousarray(second, dtype=np.int64))
+                          np.ascontiguousarray(second, dtype=np.int64), float(ahead),
+                          float(margin), float(sweep))
     if found.first.size == 0:
         return Contacts.empty()
     return Contacts(i=found.first, j=found.second, normal=found.normal,
@@ -67,19 +75,43 @@ def find_contacts(position: np.ndarray, velocity: np.ndarray, radius: np.ndarray
 
 
 class NarrowphaseStage(Stage):
-    """Keep the candidate pairs that overlap; record the deepest overlap."""
+    """Keep the candidate pairs that overlap; record the deepest overlap.
+
+    ``speculative``: under a restitution threshold, also the pairs whose gap
+    is below threshold x dt plus SPECULATIVE_MARGIN of their mean radius
+    (found before they touch; the contact solve lets them close by their
+    gap, ``law.primitives.closing_allowance``). ``impacts``: also pairs
+    within (|v_i| + |v_j|) dt, which may meet within the step (a pipeline
+    without swept contacts finds its impacts before they overlap, also
+    those the solve's impulses turn towards each other).
+    """
 
     name = 'narrowphase'
+
+    def __init__(self, speculative: bool = False, impacts: bool = False) -> None:
+        """Say whether speculative contacts (and impacts before they touch) are kept too."""
+        self.speculative = speculative
+        self.impacts = impacts
 
     def run(self, ctx: StepContext) -> None:
         """Store contacts on the context."""
         s = ctx.state
+        ahead = margin = sweep = 0.0
+        if self.speculative:
+            threshold = float(ctx.effects.threshold(ctx.dt))
+            if threshold > 0.0:
+                ahead, margin = threshold * ctx.dt, SPECULATIVE_MARGIN
+                sweep = ctx.dt if self.impacts else 0.0
         ctx.contacts = find_contacts(s.position, s.velocity, s.radius, s.inv_mass, ctx.pair_i,
-                                     ctx.pair_j)
+                                     ctx.pair_j, ahead, margin, sweep)
         if len(ctx.contacts):
             deepest = float(ctx.contacts.penetration.max())
             ctx.stats.max_penetration = max(ctx.stats.max_penetration, deepest)
 
     def describe(self) -> str:
         """Say what the stage does."""
-        return 'contact when |p1-p2| < r1+r2, N = (p1-p2)/|p1-p2| (scale-robust)'
+        text = 'contact when |p1-p2| < r1+r2, N = (p1-p2)/|p1-p2| (scale-robust)'
+        if self.speculative:
+            text += ('; under a restitution threshold also pairs within threshold x dt + '
+                     f'{SPECULATIVE_MARGIN:g} r of touching (speculative)')
+        return text

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -26,12 +27,17 @@ class ContactArrays(NamedTuple):
 
 
 @njit(cache=True, nogil=True)
-def find_overlaps(particles, candidate_first, candidate_second):
+def find_overlaps(particles, candidate_first, candidate_second, ahead, margin, sweep):
     """Return the ``ContactArrays`` of the candidate pairs that overlap, in candidate order.
 
     Contact when |p1 - p2| < r1 + r2 and at least one can move; the normal
     and distance are ``line_of_action``'s (scale-robust, with its fallback
-    for coincident centres).
+    for coincident centres). With ``ahead`` (m) and ``margin`` (of the mean
+    radius) a pair is kept while |p1 - p2| < (r1 + r2) (1 + margin / 2) +
+    ahead: speculative contacts, with a negative penetration (their gap).
+    With ``sweep`` (s) the gap may also be what the two particles' speeds
+    cover in that time, (|v1| + |v2|) sweep: impacts found before they
+    touch, also where the solve's impulses turn a pair towards each other.
     """
     position, velocity = particles.position, particles.velocity
     radius, inv_mass = particles.radius, particles.inv_mass
@@ -45,16 +51,25 @@ def find_overlaps(particles, candidate_first, candidate_second):
         oy = position[a, 1] - position[b, 1]
         oz = position[a, 2] - position[b, 2]
         reach = radius[a] + radius[b]
+        speculative = ahead > 0.0 or margin > 0.0 or sweep > 0.0
+        near = reach + (0.5 * margin * reach + ahead) if speculative else reach
+        ux = velocity[a, 0] - velocity[b, 0]
+        uy = velocity[a, 1] - velocity[b, 1]
+        uz = velocity[a, 2] - velocity[b, 2]
+        if sweep > 0.0:
+            near += sweep * (
+                math.sqrt(dot3(velocity[a, 0], velocity[a, 1], velocity[a, 2], velocity[a, 0],
+                               velocity[a, 1], velocity[a, 2]))
+                + math.sqrt(dot3(velocity[b, 0], velocity[b, 1], velocity[b, 2], velocity[b, 0],
+                                 velocity[b, 1], velocity[b, 2])))
         # A cheap, slightly generous prefilter on the squared distance (offsets
         # that underflow square to 0 and pass; the exact test follows).
-        if not dot3(ox, oy, oz, ox, oy, oz) <= reach * reach * (1.0 + 1e-9):
+        if not dot3(ox, oy, oz, ox, oy, oz) <= near * near * (1.0 + 1e-9):
             continue
         if not (inv_mass[a] + inv_mass[b]) > 0.0:
             continue
-        nx, ny, nz, distance = line_of_action(
-            ox, oy, oz, velocity[a, 0] - velocity[b, 0], velocity[a, 1] - velocity[b, 1],
-            velocity[a, 2] - velocity[b, 2])
-        if not distance < reach:
+        nx, ny, nz, distance = line_of_action(ox, oy, oz, ux, uy, uz)
+        if not distance < near:
             continue
         first[kept], second[kept] = a, b
         normal[kept, 0], normal[kept, 1], normal[kept, 2] = nx, ny, nz
@@ -69,7 +84,8 @@ def warm_up() -> None:
     particles = ParticleArrays(np.array([[0.0, 0.0, 0.0], [1.9, 0.0, 0.0]]),
                                np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]), np.ones(2),
                                np.ones(2))
-    find_overlaps(particles, np.array([1], dtype=np.int64), np.array([0], dtype=np.int64))
+    find_overlaps(particles, np.array([1], dtype=np.int64), np.array([0], dtype=np.int64),
+                  0.0, 0.0, 0.0)
 
 
 def kernels() -> list:

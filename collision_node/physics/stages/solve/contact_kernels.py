@@ -2,11 +2,13 @@
 
 ``solve_step`` runs a whole step's contact solve of
 ``sequential_impulses`` in one call: its set-up (wall contacts, visit and
-shock orders, coefficients by the combine rule, the warm start's cache),
+order, coefficients by the combine rule, the warm start's cache),
 then ``solve_contacts`` (Gauss-Seidel sweeps over pairs and wall planes,
-the restitution threshold with its 'struck' rule, Coulomb friction with
-spin, accumulated resting impulses, shock passes), then this solve's
-cache. ``jacobi_sweeps`` is the batched ordering's solve: every contact's
+the restitution threshold with its 'struck' rule, speculative contacts
+that may close by their gap, Coulomb friction with spin, accumulated
+resting impulses), then this solve's cache. Every impulse between two
+particles is equal and opposite; only walls and static particles take
+momentum. ``jacobi_sweeps`` is the batched ordering's solve: every contact's
 impulse from the velocities at the start of its sweep.
 
 Every impulse comes from the law's primitives (``law/primitives.py``).
@@ -27,10 +29,11 @@ from ...step import numba_cache  # noqa: F401,I100 (chooses numba's cache direct
 from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
 
 from ...law.primitives import (apply_pair_normal, apply_tangential, apply_wall_normal, Bodies,
-                               BOOKED, book_loss, book_pair_loss, combined_coefficient, dot3,
-                               EFFECTS, FRICTION, friction_accumulated, into_cone, loss_share,
-                               pair_friction_spun, push_pair, push_particle, push_wall,
-                               RESTITUTION, spin_factor, STICK_FACTOR, tangential_slip, WALLS)
+                               BOOKED, book_loss, book_pair_loss, closing_allowance,
+                               combined_coefficient, dot3, EFFECTS, FRICTION,
+                               friction_accumulated, into_cone, loss_share, pair_friction_spun,
+                               push_pair, push_wall, RESTITUTION, spin_factor, STICK_FACTOR,
+                               tangential_slip, WALLS)
 from ...model.tunables import WALL_SLOP
 from .wall_kernels import WallPlanes
 
@@ -49,10 +52,12 @@ class SolverSettings(NamedTuple):
     iterations: int          # sweep budget
     friction: bool           # Coulomb friction with spin after each normal impulse
     planar: bool             # a 2-D scene: in-plane friction only
-    shock: bool              # shock passes after the sweeps (gravity and a threshold)
-    shock_passes: int        # at most this many
     accumulate: bool         # accumulated resting impulses, warm-started from the cache
-    colour_order: bool       # visit in the given orders (else pairs in order, shock by height)
+    colour_order: bool       # visit in the given order (else pairs in order)
+    dt: float                # s: the (sub)step the next drift takes (speculative contacts)
+    ahead: float             # m: wall contacts are found this far beyond the touching slop
+    margin: float            # of r: and this many radii (0 with ``ahead`` 0: touching only)
+    early_impacts: bool      # an impact found before it touches bounces now (no swept stage)
 
 
 class StepContacts(NamedTuple):
@@ -62,8 +67,7 @@ class StepContacts(NamedTuple):
     second: np.ndarray       # (m,) particle rows j
     normal: np.ndarray       # (m, 3) line of action, from j to i
     visit_order: np.ndarray  # the sweeps' order with ``colour_order`` (else empty)
-    shock_order: np.ndarray  # the shock passes' order with ``colour_order`` (else empty)
-    height: np.ndarray       # (n,) height along -g per particle with shock passes (else empty)
+    gap: np.ndarray          # (m,) |p_i - p_j| - r_i - r_j, m (> 0: speculative; empty: none)
 
 
 class Coefficients(NamedTuple):
@@ -101,8 +105,8 @@ class PairContacts(NamedTuple):
     friction: np.ndarray     # (m,) mu (0 without friction)
     share: np.ndarray        # (m,) first's share of the pair's loss (``loss_share``)
     order: np.ndarray        # the sweeps' visit order
-    shock_order: np.ndarray  # the shock passes' order, ground up (empty: none)
-    first_lower: np.ndarray  # (m,) whether first is the lower particle (shock passes)
+    allowance: np.ndarray    # (m,) m/s the pair may close by in the next step (gap / dt)
+    ahead: np.ndarray        # (m,) the pair has a gap: found before it touches
 
 
 class WallContacts(NamedTuple):
@@ -114,6 +118,8 @@ class WallContacts(NamedTuple):
     inward: np.ndarray       # +1 or -1 along the axis
     restitution: np.ndarray
     friction: np.ndarray
+    allowance: np.ndarray    # m/s the particle may close by in the next step (gap / dt)
+    ahead: np.ndarray        # a gap beyond the touching slop: found before it touches
 
 
 class ContactImpulses(NamedTuple):
@@ -144,15 +150,6 @@ class Losses(NamedTuple):
 
     per_particle: np.ndarray
     totals: np.ndarray       # per effect, J
-
-
-class ShockRows(NamedTuple):
-    """The pairs as the shock passes walk them: in ``order``, lower and upper particle."""
-
-    order: np.ndarray
-    lower: np.ndarray
-    upper: np.ndarray
-    outward: np.ndarray      # (., 3) N from lower to upper
 
 
 class SolveResult(NamedTuple):
@@ -193,24 +190,34 @@ def _solve_wall_plane(bodies, marks, walls, impulses, settings, tolerance, start
     With ``accumulate`` the resting impulse of each contact is accumulated
     and may be taken back down to 0 when the particle leaves the plane (see
     ``solve_contacts``); impact impulses go to ``impact_total``, and a
-    bounce never reflects the closing speed that warm pushes added.
+    bounce never reflects the closing speed that warm pushes added. A
+    contact found before it touches (``ahead``) may close by its
+    ``allowance``; one that is an impact is left to the walls stage, which
+    takes it at its time in the next step.
     """
     v, ang, inv_mass, radius = bodies
     threshold, accumulate = settings.threshold, settings.accumulate
     any_hit = False
     for c in range(start, stop):
         p, axis, inward = walls.particle[c], walls.axis[c], walls.inward[c]
+        if walls.ahead[c] and impulses.impact[c]:
+            continue
         e = walls.restitution[c]
         if settings.use_threshold:
             u = inward * v[p, axis]
             if not (-u >= threshold and (impulses.impact[c] or marks.struck[p])):
                 e = 0.0
         approach = -inward * v[p, axis]
-        if approach > tolerance:
+        slack = approach - walls.allowance[c]
+        if slack > tolerance:
             bounce = approach
             if accumulate and e > 0.0 and marks.warmed[p]:
                 bounce = min(approach, max(approach + inward * marks.warm_change[p, axis], 0.0))
-            if bounce < approach:
+            if e == 0.0 and walls.allowance[c] > 0.0:
+                # Speculative: close by the gap in the next step, no more.
+                magnitude = slack / inv_mass[p]
+                removed = push_wall(v, inv_mass, p, axis, inward, magnitude, approach)
+            elif bounce < approach:
                 change = approach + e * bounce
                 v[p, axis] += inward * change
                 magnitude = change / inv_mass[p]
@@ -225,12 +232,11 @@ def _solve_wall_plane(bodies, marks, walls, impulses, settings, tolerance, start
                     impulses.impact_total[c] += magnitude
                 else:
                     impulses.resting[c] += magnitude
-        elif accumulate and approach < -tolerance and impulses.resting[c] > 0.0:
-            # Leaving the plane with resting impulse to give back: take back
-            # what stops it leaving, at most the accumulated impulse (beyond
-            # the tolerance, as an approach; the shock stage's wall visits
-            # run at tolerance 0 and take back every leaving).
-            magnitude = max(approach / inv_mass[p], -impulses.resting[c])
+        elif accumulate and slack < -tolerance and impulses.resting[c] > 0.0:
+            # Leaving the plane (beyond its allowance) with resting impulse to
+            # give back: take back what stops it leaving, at most the
+            # accumulated impulse (beyond the tolerance, as an approach).
+            magnitude = max(slack / inv_mass[p], -impulses.resting[c])
             removed = push_wall(v, inv_mass, p, axis, inward, magnitude, approach)
             impulses.resting[c] += magnitude
         else:
@@ -278,65 +284,12 @@ def _solve_walls(bodies, marks, walls, impulses, settings, tolerance, first_visi
 
 
 @njit(cache=True)
-def _shock_rows(pairs):
-    """Return each pair's (lower, upper, N lower -> upper) in the shock order.
-
-    Gathered once per solve for the up to 2 * SHOCK_PASSES passes that walk
-    them: rows in the order they are visited, and no branch on which side
-    is the lower one (the same values, N negated exactly).
-    """
-    order, normal = pairs.shock_order, pairs.normal
-    size = order.size
-    lower, upper = np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64)
-    outward = np.empty((size, 3))
-    for s in range(size):
-        k = order[s]
-        if pairs.first_lower[k]:
-            lower[s], upper[s] = pairs.first[k], pairs.second[k]
-            for d in range(3):
-                outward[s, d] = -normal[k, d]
-        else:
-            lower[s], upper[s] = pairs.second[k], pairs.first[k]
-            for d in range(3):
-                outward[s, d] = normal[k, d]
-    return ShockRows(order, lower, upper, outward)
-
-
-@njit(cache=True)
-def _shock_pass(bodies, dynamic, rows, threshold, pushed, losses):
-    """One shock-propagation pass, ground up; return whether it pushed.
-
-    The upper particle's approach along the line of action is stopped
-    against the lower one (never lifted), the work of the impulse booked as
-    'restitution'; ``pushed`` sums the impulse per pair.
-    """
-    v, inv_mass = bodies.velocity, bodies.inv_mass
-    any_push = False
-    for s in range(rows.order.size):
-        k, lower, upper = rows.order[s], rows.lower[s], rows.upper[s]
-        nx, ny, nz = rows.outward[s, 0], rows.outward[s, 1], rows.outward[s, 2]
-        u_upper = dot3(v[upper, 0], v[upper, 1], v[upper, 2], nx, ny, nz)
-        u_lower = dot3(v[lower, 0], v[lower, 1], v[lower, 2], nx, ny, nz)
-        target = min(u_lower, 0.0)
-        if not (u_upper < target - 0.0 and u_lower - u_upper < threshold and dynamic[upper]):
-            continue
-        magnitude = (target - u_upper) / inv_mass[upper]
-        removed = push_particle(v, inv_mass, upper, (magnitude * nx, magnitude * ny,
-                                                     magnitude * nz))
-        book_loss(losses.per_particle, RESTITUTION, upper, removed)
-        losses.totals[RESTITUTION] += removed
-        pushed[k] += magnitude
-        any_push = True
-    return any_push
-
-
-@njit(cache=True)
 def _take_back_pairs(bodies, pairs, impulses, losses):
     """One pass in visit order taking back the resting impulse of every opening pair.
 
     The sweeps take back only beyond the tolerance; this leaves no pair
-    opening under a resting impulse it holds (momentum conserved, the work
-    booked as 'restitution').
+    opening (beyond its allowance) under a resting impulse it holds
+    (momentum conserved, the work booked as 'restitution').
     """
     v, inv_mass, normal, resting = bodies.velocity, bodies.inv_mass, pairs.normal, \
         impulses.resting
@@ -346,51 +299,15 @@ def _take_back_pairs(bodies, pairs, impulses, losses):
         a, b = pairs.first[k], pairs.second[k]
         nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
         approach = -dot3(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2], nx, ny, nz)
-        if not approach < 0.0:
+        slack = approach - pairs.allowance[k]
+        if not slack < 0.0:
             continue
-        magnitude = max(approach / (inv_mass[a] + inv_mass[b]), -resting[k])
+        magnitude = max(slack / (inv_mass[a] + inv_mass[b]), -resting[k])
         removed = push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
         resting[k] += magnitude
         book_pair_loss(losses.per_particle, RESTITUTION, a, b, removed, pairs.share[k])
         losses.totals[RESTITUTION] += removed
         impulses.normal[k] += magnitude
-
-
-@njit(cache=True)
-def _take_back_pass(bodies, dynamic, rows, impulses, losses):
-    """Take back resting impulse the sweeps left pushing contacts open; return whether any.
-
-    The counterpart of ``_shock_pass`` for accumulated impulses: ground up,
-    the upper particle of a contact that holds resting impulse and opens is
-    slowed along the line of action to the lower one's speed (never below
-    0: it is not pulled down), taking back at most that impulse. Only the
-    upper particle's kinetic energy changes and it only falls; the work is
-    booked as 'restitution'.
-    """
-    v, inv_mass, resting = bodies.velocity, bodies.inv_mass, impulses.resting
-    any_taken = False
-    for s in range(rows.order.size):
-        k = rows.order[s]
-        if not resting[k] > 0.0:
-            continue
-        lower, upper = rows.lower[s], rows.upper[s]
-        nx, ny, nz = rows.outward[s, 0], rows.outward[s, 1], rows.outward[s, 2]
-        if not dynamic[upper]:
-            continue
-        u_upper = dot3(v[upper, 0], v[upper, 1], v[upper, 2], nx, ny, nz)
-        u_lower = dot3(v[lower, 0], v[lower, 1], v[lower, 2], nx, ny, nz)
-        target = max(u_lower, 0.0)
-        if not u_upper > target:
-            continue
-        magnitude = max((target - u_upper) / inv_mass[upper], -resting[k])
-        removed = push_particle(v, inv_mass, upper, (magnitude * nx, magnitude * ny,
-                                                     magnitude * nz))
-        resting[k] += magnitude
-        book_loss(losses.per_particle, RESTITUTION, upper, removed)
-        losses.totals[RESTITUTION] += removed
-        impulses.normal[k] += magnitude
-        any_taken = True
-    return any_taken
 
 
 @njit(cache=True)
@@ -528,6 +445,7 @@ def _sweep_pairs(bodies, marks, pairs, impulses, settings, losses):
     threshold, tolerance, accumulate = settings.threshold, settings.tolerance, \
         settings.accumulate
     resting = impulses.resting
+    allowance, ahead = pairs.allowance, pairs.ahead
     applied = False
     for k in pairs.order:
         a, b = pairs.first[k], pairs.second[k]
@@ -535,7 +453,12 @@ def _sweep_pairs(bodies, marks, pairs, impulses, settings, losses):
         # The closing speed is read once: it decides both whether the pair
         # gets an impulse and, against the threshold, its e.
         approach = -dot3(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2], nx, ny, nz)
-        if approach > tolerance:
+        slack = approach - allowance[k]
+        if slack > tolerance:
+            if ahead[k] and impulses.impact[k] and not settings.early_impacts:
+                # An impact found before it touches: taken when it does, at its
+                # time of impact by the swept stage.
+                continue
             e = rest[k]
             if settings.use_threshold:
                 if not (approach >= threshold and (impulses.impact[k] or struck[a]
@@ -549,7 +472,11 @@ def _sweep_pairs(bodies, marks, pairs, impulses, settings, losses):
                 bounce = min(approach, max(approach + dot3(
                     warm[a, 0] - warm[b, 0], warm[a, 1] - warm[b, 1],
                     warm[a, 2] - warm[b, 2], nx, ny, nz), 0.0))
-            if bounce < approach:
+            if e == 0.0 and allowance[k] > 0.0:
+                # Speculative: close by the gap in the next step, no more.
+                magnitude = slack / (inv_mass[a] + inv_mass[b])
+                removed = push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
+            elif bounce < approach:
                 magnitude = (approach + e * bounce) / (inv_mass[a] + inv_mass[b])
                 removed = push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
             else:
@@ -567,13 +494,14 @@ def _sweep_pairs(bodies, marks, pairs, impulses, settings, losses):
                     impulses.impact_total[k] += magnitude
                 else:
                     resting[k] += magnitude
-        elif accumulate and approach < -tolerance and resting[k] > 0.0:
-            # Opening with resting impulse to give back (e.g. from the warm
-            # start): take back what stops it opening, at most all of it.
-            # Beyond the tolerance only, as an approach: a converged contact
-            # costs a dot product per sweep; ``_take_back_pairs`` takes back
-            # what is left below it after the sweeps.
-            magnitude = max(approach / (inv_mass[a] + inv_mass[b]), -resting[k])
+        elif accumulate and slack < -tolerance and resting[k] > 0.0:
+            # Opening (beyond its allowance) with resting impulse to give back
+            # (e.g. from the warm start): take back what stops it opening, at
+            # most all of it. Beyond the tolerance only, as an approach: a
+            # converged contact costs a dot product per sweep;
+            # ``_take_back_pairs`` takes back what is left below it after the
+            # sweeps.
+            magnitude = max(slack / (inv_mass[a] + inv_mass[b]), -resting[k])
             removed = push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
             resting[k] += magnitude
         else:
@@ -606,9 +534,16 @@ def solve_contacts(bodies, marks, pairs, walls, pair_impulses, wall_impulses, se
 
     Sweeps visit the pairs in visit order, then each wall plane, until no
     contact's impulse changes by more than ``tolerance`` times its mass
-    (its velocity change) or ``iterations`` sweeps are done; then, with a
-    shock order, walls and up to ``shock_passes`` shock passes. Outputs
-    are filled in place (``ContactImpulses``, ``Losses``).
+    (its velocity change) or ``iterations`` sweeps are done. Outputs are
+    filled in place (``ContactImpulses``, ``Losses``). A contact found
+    before it touches (``ahead``, a gap g > 0) is held to closing at most
+    g / dt (its ``allowance``: it touches at the end of the next drift, no
+    earlier overlap), as resting contact; one closing faster than the
+    threshold before the solve is an impact: with ``early_impacts`` (no
+    swept stage) it gets the law's impulse now, before it overlaps;
+    otherwise it is left to the swept stage, at its time of impact. Every
+    impulse between two particles is equal and opposite, so only walls and
+    static particles take momentum.
 
     With ``accumulate`` (a restitution threshold is set), impulses at
     contacts below the threshold (resting, e = 0, target separating speed
@@ -642,18 +577,6 @@ def solve_contacts(bodies, marks, pairs, walls, pair_impulses, wall_impulses, se
             break
     if settings.accumulate:
         _take_back_pairs(bodies, pairs, pair_impulses, losses)
-    if pairs.shock_order.size:
-        _solve_walls(bodies, marks, walls, wall_impulses, settings, 0.0, False, losses)
-        rows = _shock_rows(pairs)
-        for _ in range(settings.shock_passes):
-            taken = False
-            if settings.accumulate:
-                taken = _take_back_pass(bodies, marks.dynamic, rows, pair_impulses, losses)
-            pushed = _shock_pass(bodies, marks.dynamic, rows, settings.threshold,
-                                 pair_impulses.normal, losses)
-            _solve_walls(bodies, marks, walls, wall_impulses, settings, 0.0, False, losses)
-            if not pushed and not taken:
-                break
     return sweeps
 
 
@@ -673,12 +596,13 @@ def _find_key(table, key):
 
 
 @njit(cache=True)
-def find_wall_contacts(position, radius, dynamic, planes, slop):
+def find_wall_contacts(position, radius, dynamic, planes, slop, ahead=0.0):
     """Return (start per plane, particle, axis, inward) of the particles touching each plane.
 
     A dynamic particle touches a plane (``WallPlanes``) when its gap is at
     most ``slop`` times its radius plus the plane's ``ulps`` (WALL_ULPS
-    spacings at its coordinate); plane after plane, in particle order.
+    spacings at its coordinate) plus ``ahead``, m; plane after plane, in
+    particle order.
     ``start`` has one entry per plane and one more (a plane nothing touches
     is an empty run).
     """
@@ -690,7 +614,7 @@ def find_wall_contacts(position, radius, dynamic, planes, slop):
         axis, plane, inward = planes.axis[q], planes.value[q], planes.inward[q]
         for p in range(n):
             gap = inward * (position[p, axis] - plane) - radius[p]
-            if dynamic[p] and gap <= slop * radius[p] + planes.ulps[q]:
+            if dynamic[p] and gap <= slop * radius[p] + planes.ulps[q] + ahead:
                 index[k] = p
                 k += 1
         start[q + 1] = k
@@ -741,35 +665,44 @@ def _pair_contacts(bodies, contacts, coefficients, settings):
             mu[c] = combined_coefficient(own_mu, has_mu, a, b, coefficients.friction)
         share[c] = loss_share(inv_mass, a, b)
     order = contacts.visit_order if settings.colour_order else np.arange(m)
-    shock_order = np.zeros(0, dtype=np.int64)
-    first_lower = np.zeros(m, dtype=np.bool_)
-    height = contacts.height
-    if settings.shock and m:
-        lower_height = np.empty(m)
+    allowance, ahead = np.zeros(m), np.zeros(m, dtype=np.bool_)
+    if contacts.gap.size == m:
         for c in range(m):
-            first_lower[c] = height[first[c]] <= height[second[c]]
-            lower_height[c] = height[first[c]] if first_lower[c] else height[second[c]]
-        shock_order = (contacts.shock_order if settings.colour_order
-                       else _stable_order(lower_height))
-    return PairContacts(first, second, contacts.normal, rest, mu, share, order, shock_order,
-                        first_lower)
+            ahead[c] = contacts.gap[c] > 0.0
+            allowance[c] = closing_allowance(contacts.gap[c], settings.dt)
+    return PairContacts(first, second, contacts.normal, rest, mu, share, order, allowance,
+                        ahead)
 
 
 @njit(cache=True)
 def _wall_contacts(radius, dynamic, position, planes, coefficients, settings):
-    """Return the particles touching each wall plane with their coefficients."""
-    start, particle, axis, inward = find_wall_contacts(position, radius, dynamic, planes,
-                                                       WALL_SLOP)
+    """Return the particles touching each wall plane with their coefficients.
+
+    With ``ahead`` > 0 also those within ``ahead`` plus ``margin`` radii of
+    a plane (speculative: their gap beyond the touching slop is their
+    allowance times dt).
+    """
+    start, particle, axis, inward = find_wall_contacts(
+        position, radius, dynamic, planes, WALL_SLOP + settings.margin, settings.ahead)
     k = particle.size
     own_e, own_mu = coefficients.own_restitution, coefficients.own_friction
     has_e, has_mu = own_e.size > 0, own_mu.size > 0
     rest, mu = np.empty(k), np.zeros(k)
+    allowance, ahead = np.zeros(k), np.zeros(k, dtype=np.bool_)
+    for q in range(start.size - 1):
+        value, ulps = planes.value[q], planes.ulps[q]
+        for c in range(start[q], start[q + 1]):
+            p = particle[c]
+            gap = inward[c] * (position[p, axis[c]] - value) - radius[p]
+            if gap > WALL_SLOP * radius[p] + ulps:
+                ahead[c] = True
+                allowance[c] = closing_allowance(gap, settings.dt)
     for c in range(k):
         p = particle[c]
         rest[c] = combined_coefficient(own_e, has_e, p, -1, coefficients.wall_restitution)
         if settings.friction:
             mu[c] = combined_coefficient(own_mu, has_mu, p, -1, coefficients.friction)
-    return WallContacts(start, particle, axis, inward, rest, mu)
+    return WallContacts(start, particle, axis, inward, rest, mu, allowance, ahead)
 
 
 @njit(cache=True, inline='always')
@@ -896,9 +829,8 @@ def _solve_step(bodies, position, ids, contacts, planes, coefficients, settings,
     The set-up: the wall contacts (``find_wall_contacts`` at WALL_SLOP of
     the ``planes``), e and mu per contact by the combine rule, the visit
     order (``visit_order`` with ``colour_order``, else the pairs in order),
-    with ``shock`` the shock passes' order (``shock_order`` with
-    ``colour_order``, else the pairs by the height of their lower particle,
-    stable), and the warm start looked up in ``cache``. ``booked`` (the
+    the speculative allowances (gap / dt), and the warm start looked up in
+    ``cache``. ``booked`` (the
     step's losses per particle so far, or empty) is updated in place.
     Returns a ``SolveResult`` with this solve's cache.
     """
@@ -1052,10 +984,11 @@ def warm_up() -> None:
     # The whole step's solve: a floor under the pair, both warm-started from a cache.
     position = np.array([[0.0, 1.0, 0.0], [1.9, 1.0, 0.0]])
     ids = np.array([0, 1], dtype=np.int64)
-    contacts = StepContacts(first, second, normal, no_rows, no_rows, np.array([1.0, 1.0]))
+    contacts = StepContacts(first, second, normal, no_rows, np.array([0.01]))
     floor = WallPlanes(np.zeros(1, dtype=np.int64), np.zeros(1), np.ones(1), np.zeros(1))
     coefficients = Coefficients(none, none, 1.0, 1.0, 1.0)
-    settings = SolverSettings(True, 0.1, 1e-4, 10.0, 4, True, True, True, 2, True, False)
+    settings = SolverSettings(True, 0.1, 1e-4, 10.0, 4, True, True, True, False, 0.01, 1e-3,
+                              0.02, True)
     cache = WarmStartCache(np.array([1], dtype=np.int64), np.ones(1), np.ones((1, 3)),
                            np.array([3], dtype=np.int64), np.ones(1), np.ones((1, 3)))
     solve_step(tuple(bodies), position, ids, tuple(contacts), tuple(floor),

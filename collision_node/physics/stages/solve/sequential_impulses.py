@@ -11,9 +11,15 @@ the solve adds to the law:
   faster than the threshold and either did so before the solve (an
   impact) or touches a particle that an impact struck within it;
 - friction right after each normal impulse, bounded by mu times it;
-- under gravity, shock passes finish resting contact from the ground up
-  (Guendelman, Bridson and Fedkiw 2003); like a floor, they do not
-  conserve momentum;
+- speculative contacts (under a restitution threshold): a pair or wall
+  contact found within its speculative distance before it touches, gap
+  g > 0, may close at most by g / dt (``closing_allowance``): it touches at
+  the end of the next drift instead of overlapping; an impact found so is
+  left to the swept stage, at its time of impact, so isolated impacts keep
+  the lecture's impulse there; without a swept stage (``early_impacts``,
+  ``fast``) it gets the lecture's impulse at once, before it overlaps;
+- every impulse between two particles is equal and opposite: momentum
+  changes only at walls and static particles;
 - resting contact (below the threshold) is solved with accumulated
   impulses, clamped >= 0 and into the Coulomb cone, kept per contact in
   ``ContactCache`` by stable particle ids and applied first in the next
@@ -26,9 +32,9 @@ the solve adds to the law:
 The whole solve, its set-up included, is one compiled call per step
 (``contact_kernels.solve_step``), visiting the pairs in the broadphase's
 sorted order (the order Gauss-Seidel walks a chain such as Newton's cradle
-from its low end in one sweep) and the shock passes' pairs by height.
-With ``visit='colours'`` it visits them colour by colour instead, the
-order of the vectorised reference the tests compare it with.
+from its low end in one sweep). With ``visit='colours'`` it visits them
+colour by colour instead, the order of the vectorised reference the tests
+compare it with.
 """
 
 from __future__ import annotations
@@ -41,7 +47,7 @@ from ...law import coloring
 from ...law.primitives import Bodies, FRICTION, RESTITUTION, WALLS
 from ...model.effects import Walls
 from ...model.impacts import record_pairs, record_walls
-from ...model.tunables import RESIDUAL_FRACTION, SHOCK_PASSES, STRIKE_FACTOR
+from ...model.tunables import RESIDUAL_FRACTION, SPECULATIVE_MARGIN, STRIKE_FACTOR
 from ...step.pipeline import Contacts, Stage, StepContext
 from .contact_kernels import (Coefficients, MAX_CACHED_ID, solve_step, SolverSettings,
                               StepContacts, WarmStartCache)
@@ -49,7 +55,7 @@ from .wall_kernels import WallPlanes
 from .walls import wall_planes
 
 # Orders the kernel visits contacts in: 'pairs' (the broadphase's sorted
-# (i, j) order, shock passes by height) or 'colours' (the reference's).
+# (i, j) order) or 'colours' (the reference's).
 VISITS = ('pairs', 'colours')
 
 # Empty arrays handed to the kernel where a scene has no such data.
@@ -141,6 +147,11 @@ class SequentialImpulseStage(Stage):
         self.walls = walls
         self.gravity = gravity
         self.visit = visit
+        # Speculative contacts under a restitution threshold (see the module doc);
+        # with early impacts (no swept stage) an impact found before it touches
+        # bounces at once.
+        self.speculative = True
+        self.early_impacts = False
         # Accumulated resting impulses, warm-started from the previous step
         # where contacts persist (under a restitution threshold).
         self.warm_start = True
@@ -169,7 +180,7 @@ class SequentialImpulseStage(Stage):
         state = ctx.state
         threshold = float(ctx.effects.threshold(ctx.dt))
         friction = self.friction is not None
-        shock = self.gravity is not None and threshold > 0.0
+        speculative = self.speculative and threshold > 0.0
         i = np.ascontiguousarray(contacts.i, dtype=np.int64)
         j = np.ascontiguousarray(contacts.j, dtype=np.int64)
         normal = np.ascontiguousarray(contacts.normal, dtype=float)
@@ -181,20 +192,18 @@ class SequentialImpulseStage(Stage):
         angular = (np.zeros((n, 3)) if spin is None
                    else np.ascontiguousarray(spin, dtype=float))
         colours = self.visit == 'colours'
-        order = shock_order = _NO_ROWS
+        order = _NO_ROWS
         if colours:
             order = np.ascontiguousarray(self._visit_order(i, j, state.dynamic), dtype=np.int64)
-        height = _NO_VALUES
-        if shock and i.size:
-            # Heights relative to the first contact's particle: the order is the
-            # same, and the products keep their digits far from the origin.
-            height = -((state.position - state.position[i[0]]) @ self.gravity)
-            if colours:
-                shock_order = self._shock_order(state, i, j, self.gravity)
+        # Gaps (> 0: found before touching) of the narrowphase's speculative pairs.
+        gap = (np.ascontiguousarray(-contacts.penetration, dtype=float) if speculative
+               else _NO_VALUES)
         settings = SolverSettings(
             threshold > 0.0, threshold, float(RESIDUAL_FRACTION * threshold),
-            float(STRIKE_FACTOR), int(self.iterations), friction, ctx.dimensions == 2, shock,
-            int(SHOCK_PASSES), self.warm_start and threshold > 0.0, colours)
+            float(STRIKE_FACTOR), int(self.iterations), friction, ctx.dimensions == 2,
+            self.warm_start and threshold > 0.0, colours, float(ctx.dt),
+            float(threshold * ctx.dt) if speculative else 0.0,
+            float(SPECULATIVE_MARGIN) if speculative else 0.0, bool(self.early_impacts))
         coefficients = Coefficients(
             _own(state.restitution), _own(state.friction) if friction else _NO_VALUES,
             float(self.restitution),
@@ -206,7 +215,7 @@ class SequentialImpulseStage(Stage):
         result = solve_step(
             tuple(bodies), np.ascontiguousarray(state.position, dtype=float),
             np.ascontiguousarray(state.ids, dtype=np.int64),
-            tuple(StepContacts(i, j, normal, order, shock_order, height)),
+            tuple(StepContacts(i, j, normal, order, gap)),
             tuple(self._planes(ctx.dimensions)), tuple(coefficients), tuple(settings),
             tuple(self.cache.kept), ctx.losses if ctx.losses is not None else _NO_VALUES)
         self.cache.adopt(result.cache)
@@ -255,17 +264,6 @@ class SequentialImpulseStage(Stage):
         batches = solve_order(i, j, dynamic)
         return np.concatenate(batches) if batches else np.zeros(0, dtype=np.int64)
 
-    def _shock_order(self, state, i: np.ndarray, j: np.ndarray,
-                     gravity: np.ndarray) -> np.ndarray:
-        """Return the shock passes' pair order in colours: ground up, colour by colour."""
-        # Heights relative to the first contact's particle, as in ``run``.
-        origin = state.position[i[0]]
-        height = -((state.position - origin) @ gravity)
-        i_lower = height[i] <= height[j]
-        order = np.argsort(np.where(i_lower, height[i], height[j]), kind='stable')
-        order = order[np.concatenate(solve_order(i[order], j[order], state.dynamic))]
-        return np.ascontiguousarray(order, dtype=np.int64)
-
     def describe(self) -> str:
         """Say what the stage does."""
         text = (f'impulse j = -(1+e) vn / (w1+w2) along N, e = {self.restitution:g}, '
@@ -276,7 +274,8 @@ class SequentialImpulseStage(Stage):
             text += (f'; Coulomb friction mu = {self.friction:g} with spin '
                      '(|J_t| <= mu j, I = 2/5 m r^2)')
         if self.gravity is not None:
-            text += '; e = 0 below the restitution threshold; shock passes for resting contact'
+            text += ('; e = 0 below the restitution threshold; speculative contacts close by '
+                     'at most their gap in the next step')
         if self.warm_start:
             text += ('; resting impulses accumulated (clamped) and warm-started from the '
                      'previous step')

@@ -23,8 +23,8 @@ next step, as overlaps.
 Only impacts closing at least as fast as the restitution threshold
 (``Effects.threshold(dt)``) are taken here; slower contacts are resting
 contact (a pile, a ball come to rest on the floor), left to the step-end
-stages the plan adds (walls, narrowphase, the sequential solve with shock
-passes and friction, separation): taken here they would be Zeno's loop of
+stages the plan adds (walls, narrowphase, the sequential solve with
+speculative contacts and friction, separation): taken here they would be Zeno's loop of
 ever smaller bounces. ``test/swept_reference.py`` states the same step in
 numpy rounds; the tests compare the two.
 """
