@@ -228,7 +228,9 @@ def test_lift_is_not_paid_for_by_an_unrelated_loss_far_away(preset):
         alone.step()
     w = bouncing_on_static_ball(preset, far_pair_at_step=alone.steps)
     w.step(alone.steps)
-    assert w.stats.collisions == 2                        # both impacts in that step
+    # Both impacts in that step (under `fast` the far pair is found a step early,
+    # closes by its gap, and is stopped in this step: impulses in two steps).
+    assert w.stats.collisions == (3 if preset == 'fast' else 2)
     assert w.energy()['dissipated']['restitution'] == pytest.approx(1.0, rel=1e-12)
     apex, rising = None, False
     while apex is None:

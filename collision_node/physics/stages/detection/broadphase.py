@@ -273,6 +273,8 @@ class BroadphaseStage(Stage):
             if threshold > 0.0:
                 # Half of each pair's speculative distance on each side.
                 extra = 0.5 * (threshold * ctx.dt + SPECULATIVE_MARGIN * state.radius)
+                # The standing part widens the skin (``_rebuild``).
+                self._extra_floor = float(np.max(extra)) if extra.size else 0.0
                 if self.impacts:
                     extra = extra + ctx.dt * np.sqrt(
                         np.einsum('ij,ij->i', state.velocity, state.velocity))
@@ -301,8 +303,6 @@ class BroadphaseStage(Stage):
             return self._all_pairs
         if extra is None:
             extra = np.zeros(n)
-        elif extra.size:
-            self._extra_floor = float(np.max(extra))
         if self._direct and self._list_matches(position, radius):
             # Allowances outgrew the skin last step: search directly until
             # they fit again, instead of rebuilding a list nobody can reuse.
