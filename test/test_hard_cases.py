@@ -17,6 +17,7 @@ import pytest
 from collision_node import World, parse_scene, scenarios
 from collision_node.scenarios import ball
 from collision_node.physics.model.accuracy import PRESETS
+from collision_node.physics.model.tunables import RESIDUAL_FRACTION
 from collision_node.physics.stages.detection.broadphase import candidate_pairs
 
 
@@ -361,31 +362,36 @@ def test_case07_resting_column_of_20_never_gains_energy_and_rests(
         preset, restitution, deep_profile):
     """Twenty 5 cm balls stacked on a floor under gravity, e = 0 and e = 1.
 
-    Total energy (kinetic + potential) never rises at any step; from 0.5 s
-    on every speed is exactly 0 (measured: at rest from the first second,
-    the stack sinking into itself and staying). `fast` (8 sweeps for a
-    chain of 20) never settles: documented, held to the energy bound and
-    to the restitution threshold 2 |g| dt as its jitter bound (measured
-    0.17 m/s, threshold 0.082 m/s: asserted as the documented outcome
-    below). `exact` takes every step event-driven, the column held by its
-    supports (no fallback; measured at rest to 2e-15 m/s, overlap 1.5e-14 m).
+    Total energy (kinetic + potential) never rises at any step, and the top
+    ball stays within 1 % of r of its exact height. From 0.5 s on every
+    speed is below the solve's convergence tolerance (RESIDUAL_FRACTION of
+    the restitution threshold 2 |g| dt; `balanced` asleep at exactly 0,
+    `accurate`, which never sleeps, measured at 2e-5 m/s). `fast` (8 sweeps
+    for a chain of 20) settles more slowly: held to the energy bound and to
+    the restitution threshold as its jitter bound. `exact` takes every step
+    event-driven, the column held by its supports (no fallback; measured at
+    rest to 2e-15 m/s, overlap 1.5e-14 m).
     """
     radius = 0.05
     world = build(preset, **scenarios.resting_column(20, restitution, radius))
     previous = world.energy()['total']
     settles = preset != 'fast'
-    fastest_late = 0.0
+    threshold = world.scene.effects.threshold(world.scene.dt)
+    top = world.state.position[-1, 1]
+    fastest_late = worst_top = 0.0
     for _ in range(480 if deep_profile else 130):
         world.step()
         total = world.energy()['total']
         assert total <= previous + 1e-12 * abs(previous)
         previous = total
+        worst_top = max(worst_top, abs(world.state.position[-1, 1] - top))
         if world.time >= 0.5:
             fastest_late = max(fastest_late, float(np.max(np.abs(world.state.velocity))))
+    assert worst_top <= 0.01 * radius
     if settles:
-        assert fastest_late <= 1e-9
+        assert fastest_late <= RESIDUAL_FRACTION * threshold
     else:
-        assert fastest_late <= 0.25          # documented: never settles (0.17 m/s)
+        assert fastest_late <= threshold
     assert_finite(world)
     assert_no_fallback(world)
     assert max_penetration(world) <= (0.002 if settles else 0.01)      # fast: 6.4 mm
@@ -418,8 +424,10 @@ def test_case07_ball_landing_on_a_resting_ball_never_gains_energy(preset):
         total = world.energy()['total']
         assert total <= previous + 1e-12 * abs(previous)
         previous = total
-    # At rest on each other, still a column, the overlap left below 0.3 mm.
-    np.testing.assert_array_less(np.abs(world.state.velocity), 1e-9)
+    # At rest on each other (`accurate`, which never sleeps, to the solve's
+    # convergence tolerance), still a column, the overlap left below 0.3 mm.
+    tolerance = RESIDUAL_FRACTION * world.scene.effects.threshold(world.scene.dt)
+    np.testing.assert_array_less(np.abs(world.state.velocity), tolerance)
     np.testing.assert_array_equal(world.state.position[:, 0], 0.0)
     assert world.state.position[0, 1] == radius
     assert 0.0 <= max_penetration(world) <= 3e-4
@@ -526,16 +534,20 @@ def test_case13_supported_bounce_restitution_does_not_depend_on_the_column(
     shock of an impact runs through resting contacts with their e) says
     the column does matter; each value is held to it within 0.01
     (measured 0.4951, 0.2198, 0.0630, 0.0 at `balanced`; 0.4951, 0.2158,
-    0.0589, 0.0 at `accurate`). `exact` takes the resting column's steps
-    with the `accurate` solver.
+    0.0589, 0.0 at `accurate`). `fast`, without a time of impact, within
+    0.03 (measured 0.979 at e = 1; 0.495, 0.193, 0.036, 0.001 at e = 0.5).
+    `exact` takes the resting column's steps with the `accurate` solver.
     """
     ratios = np.array([supported_bounce(preset, column, restitution) for column in range(4)])
+    # `fast` has no time of impact: the ball's contact is found before it
+    # touches and solved in the same sweeps as the resting column's.
+    spread = 0.03 if preset == 'fast' else 0.01
     assert ratios.max() <= 1.01 * restitution
     if restitution == 1.0:
-        assert ratios.min() >= 0.98
-        assert ratios.max() - ratios.min() <= 0.02
+        assert ratios.min() >= 1.0 - 2 * spread
+        assert ratios.max() - ratios.min() <= 2 * spread
     expected = [sequential_impact_model(column, restitution) for column in range(4)]
-    np.testing.assert_allclose(ratios, expected, rtol=0, atol=0.01 * max(restitution, 1.0))
+    np.testing.assert_allclose(ratios, expected, rtol=0, atol=spread * max(restitution, 1.0))
 
 
 # 14. Two-ball drop -----------------------------------------------------------------------

@@ -14,9 +14,34 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from collision_node.physics.model.effects import Walls
+from collision_node.physics.model.tunables import SUPPORT_SLOP
 from collision_node.physics.stages.correction.separation import SeparationStage
 from collision_node.physics.stages.detection.narrowphase import line_of_action
 from collision_node.physics.step.pipeline import StepContext
+
+UNSUPPORTED = np.iinfo(np.int64).max
+
+
+def support_levels(position: np.ndarray, radius: np.ndarray, dynamic: np.ndarray,
+                   i: np.ndarray, j: np.ndarray, walls: Optional[Walls],
+                   gravity: np.ndarray, dimensions: int) -> np.ndarray:
+    """Return each particle's distance in contacts from a floor it touches or a static one."""
+    supported = ~dynamic
+    if walls is not None:
+        for axis, value, inward in walls.planes(dimensions):
+            if not inward * gravity[axis] < 0.0:
+                continue
+            gap = inward * (position[:, axis] - value) - radius
+            supported = supported | (gap <= SUPPORT_SLOP * radius)
+    level = np.where(supported, 0, UNSUPPORTED).astype(np.int64)
+    k = 0
+    while True:
+        reached = np.concatenate([j[(level[i] == k) & (level[j] == UNSUPPORTED)],
+                                  i[(level[j] == k) & (level[i] == UNSUPPORTED)]])
+        if reached.size == 0:
+            return level
+        level[reached] = k + 1
+        k += 1
 
 
 def held_by_walls(position: np.ndarray, radius: np.ndarray, push: np.ndarray, walls: Walls,
@@ -139,9 +164,14 @@ class SeparationOracle(SeparationStage):
                          held_by: Optional[Walls]) -> None:
         """Gauss-Seidel passes: pair after pair from the positions as they are, then walls."""
         s, c = ctx.state, ctx.contacts
+        count = len(c) if has_pairs else 0
+        i, j = (c.i, c.j) if has_pairs else (np.zeros(0, np.int64), np.zeros(0, np.int64))
+        level = support_levels(s.position, s.radius, s.dynamic, i, j, self.walls,
+                               np.asarray(ctx.effects.gravity, dtype=float), ctx.dimensions)
+        order = np.argsort(np.minimum(level[i], level[j]), kind='stable')
         for _ in range(passes):
             overlapped = False
-            for k in range(len(c) if has_pairs else 0):
+            for k in order[:count]:
                 a, b = c.i[k:k + 1], c.j[k:k + 1]
                 normal, distance = line_of_action(s.position[a] - s.position[b],
                                                   s.velocity[a] - s.velocity[b])
@@ -149,15 +179,11 @@ class SeparationOracle(SeparationStage):
                 if not depth[0] > 0.0:
                     continue
                 overlapped = True
-                w_a, w_b = s.inv_mass[a], s.inv_mass[b]
-                if held_by is not None:
-                    share = (depth / (w_a + w_b))[:, None] * normal
-                    held_a = held_by_walls(s.position[a] + w_a[:, None] * share, s.radius[a],
-                                           normal, held_by, ctx.dimensions)
-                    held_b = held_by_walls(s.position[b] - w_b[:, None] * share, s.radius[b],
-                                           -normal, held_by, ctx.dimensions)
-                    w_a, w_b = (np.where(held_a & ~held_b & (w_b > 0.0), 0.0, w_a),
-                                np.where(held_b & ~held_a & (w_a > 0.0), 0.0, w_b))
+                w_a, w_b = s.inv_mass[a].copy(), s.inv_mass[b].copy()
+                if level[a[0]] < level[b[0]] and w_b[0] > 0.0:
+                    w_a[:] = 0.0
+                elif level[b[0]] < level[a[0]] and w_a[0] > 0.0:
+                    w_b[:] = 0.0
                 w_sum = w_a + w_b
                 if not w_sum[0] > 0.0:
                     continue

@@ -13,6 +13,14 @@ enforces them (``model/particles.py``, ``model/scene.py``).
 # resolved, so sweeps over resting contact stop at rounding-level residues.
 RESIDUAL_FRACTION = 1.0e-3
 
+# Under gravity a contact whose normal, from the lower particle (or floor)
+# to the upper one, points against gravity by at least this cosine supports
+# the upper particle: a cold resting contact starts its solve from the share
+# of the static load it carries (m g dt from above; 0.1 is 84 degrees off
+# vertical). Side contacts below it carry no seed (the sweeps still solve
+# them); 1 would seed only contacts straight below.
+MIN_SUPPORT_ALIGNMENT = 0.1
+
 # An impulse marks its particles struck (see _run_dissipative) only if its
 # pair closed at this many times the restitution threshold. Closing speeds
 # also build up inside a resting stack whose sweeps did not converge in the
@@ -63,6 +71,15 @@ BISECTIONS = 60
 
 # Projection passes per step under gravity (one without: the lecture's).
 GRAVITY_PASSES = 4
+
+# Of r: under gravity, a particle this close to a floor plane (or to a
+# particle below it) rests on it: the contact solve seeds a cold contact
+# with the static load, and separation's pushes travel away from the supports: each pair's particle
+# nearer a support (in contacts) holds and the other takes the whole push,
+# so one pass lifts a column's overlap off its floor instead of pressing the
+# lower particle into it. Larger counts hovering particles as supported
+# (they hold, their partners move); 0 counts only particles on the plane.
+SUPPORT_SLOP = 0.01
 
 # --- Broadphase (stages/detection) ---------------------------------------------------------------
 

@@ -139,6 +139,52 @@ def union_root(parent, p):
     return p
 
 
+# The support level of a particle that no contact chain links to a support.
+UNSUPPORTED = np.iinfo(np.int64).max
+
+
+@njit(cache=True)
+def spread_levels(level, first, second):
+    """Fill ``level`` in place: each particle's distance in contacts from a level-0 one.
+
+    ``level`` holds 0 at the supports and UNSUPPORTED elsewhere; breadth
+    first over the pairs (``first``, ``second``), a particle in contact
+    with a level-k one becomes at most level k + 1. Shortest distances, so
+    the result does not depend on the pairs' order.
+    """
+    n, m = level.size, first.size
+    queue = np.empty(n, dtype=np.int64)
+    tail = 0
+    for p in range(n):
+        if level[p] == 0:
+            queue[tail] = p
+            tail += 1
+    start = np.zeros(n + 1, dtype=np.int64)
+    for k in range(m):
+        start[first[k] + 1] += 1
+        start[second[k] + 1] += 1
+    for p in range(n):
+        start[p + 1] += start[p]
+    fill = start[:n].copy()
+    neighbour = np.empty(2 * m, dtype=np.int64)
+    for k in range(m):
+        a, b = first[k], second[k]
+        neighbour[fill[a]] = b
+        fill[a] += 1
+        neighbour[fill[b]] = a
+        fill[b] += 1
+    head = 0
+    while head < tail:
+        p = queue[head]
+        head += 1
+        for s in range(start[p], start[p + 1]):
+            q = neighbour[s]
+            if level[q] == UNSUPPORTED:
+                level[q] = level[p] + 1
+                queue[tail] = q
+                tail += 1
+
+
 def warm_up() -> None:
     """Call each kernel once on a tiny problem (compiles or loads from the cache)."""
     position, velocity = np.zeros((2, 3)), np.ones((2, 3))

@@ -142,10 +142,20 @@ class SeparationStage(Stage):
         else:
             contacts = ContactArrays(_NO_PAIRS, _NO_PAIRS, np.zeros((0, 3)), np.zeros(0))
         particles = particle_arrays(s)
+        bounds = self._wall_bounds(ctx.dimensions)
         project_overlaps(particles, np.ascontiguousarray(s.dynamic, dtype=np.bool_), contacts,
-                         self._wall_bounds(ctx.dimensions), passes, hold, passes > 1)
+                         bounds, self._floors(bounds, ctx.effects.gravity), passes, hold,
+                         passes > 1)
         if particles.position is not s.position:
             s.position[...] = particles.position
+
+    @staticmethod
+    def _floors(bounds: WallBounds, gravity: Optional[np.ndarray]) -> np.ndarray:
+        """Return per wall plane whether it holds particles up (inward against gravity)."""
+        if gravity is None:
+            return np.zeros(bounds.plane_axis.size, dtype=np.bool_)
+        g = np.asarray(gravity, dtype=float)
+        return np.ascontiguousarray(bounds.plane_inward * g[bounds.plane_axis] < 0.0)
 
     def _wall_bounds(self, dimensions: int) -> WallBounds:
         """Return the walls as the kernels take them (built once per dimension count)."""

@@ -18,8 +18,10 @@ from ...step import numba_cache  # noqa: F401,I100 (chooses numba's cache direct
 from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
 
 from ...law.primitives import dot3, line_of_action  # noqa: E402
-from ...step.step_kernels import ParticleArrays, union_root  # noqa: E402
+from ...step.step_kernels import (ParticleArrays, spread_levels, union_root,  # noqa: E402
+                                  UNSUPPORTED)
 from ..detection.narrowphase_kernels import ContactArrays  # noqa: E402
+from ...model.tunables import SUPPORT_SLOP  # noqa: E402
 
 
 class WallBounds(NamedTuple):
@@ -114,21 +116,60 @@ def _separate_pass(particles, contacts, active, hold, walls, work):
 
 
 @njit(cache=True)
-def _separate_in_turn(particles, contacts, hold, walls):
-    """One Gauss-Seidel projection pass: each pair in order, from the positions as they are.
+def support_levels(particles, dynamic, contacts, walls, floors):
+    """Return each particle's distance in contacts from a support (UNSUPPORTED: none).
+
+    A static particle, and a dynamic one within ``SUPPORT_SLOP`` of its
+    radius of a wall plane that holds it up against gravity (``floors``,
+    one flag per plane: its inward normal points against gravity), is level
+    0 (``spread_levels`` does the rest).
+    """
+    position, radius = particles.position, particles.radius
+    n = position.shape[0]
+    level = np.full(n, UNSUPPORTED, dtype=np.int64)
+    for p in range(n):
+        supported = not dynamic[p]
+        if walls.present:
+            for q in range(walls.plane_axis.size):
+                if not floors[q]:
+                    continue
+                axis, inward = walls.plane_axis[q], walls.plane_inward[q]
+                gap = inward * (position[p, axis] - walls.plane_value[q]) - radius[p]
+                if gap <= SUPPORT_SLOP * radius[p]:
+                    supported = True
+        if supported:
+            level[p] = 0
+    spread_levels(level, contacts.first, contacts.second)
+    return level
+
+
+@njit(cache=True)
+def support_order(contacts, level):
+    """Return the pairs nearest a support first (by the lower level of the two; stable)."""
+    first, second = contacts.first, contacts.second
+    key = np.empty(first.size, dtype=np.int64)
+    for k in range(first.size):
+        key[k] = min(level[first[k]], level[second[k]])
+    return np.argsort(key, kind='mergesort')
+
+
+@njit(cache=True)
+def _separate_in_turn(particles, contacts, order, level):
+    """One Gauss-Seidel projection pass: each pair in ``order``, from the positions as they are.
 
     Each overlapping pair is pushed apart along its current line of action
-    by its overlap, shared by inverse mass (``hold``: a particle its push
-    would take into a wall stays put and its partner takes the whole push).
-    Two dynamic particles move by m_a dx_a = -m_b dx_b: their centre of mass
-    stays, so no pass lifts a cluster that neither a wall nor a static
-    particle supports. Returns whether any pair overlapped.
+    by its overlap. Of two dynamic particles at different support levels the
+    one nearer a support holds and the other takes the whole push (a lift
+    from the support, paid for by ``pay_for_lift``); at one level, and in a
+    cluster no wall or static particle supports, the push is shared by
+    inverse mass, m_a dx_a = -m_b dx_b: the centre of mass stays, so no pass
+    lifts an unsupported cluster. Returns whether any pair overlapped.
     """
     position, velocity, radius = particles.position, particles.velocity, particles.radius
     inv_mass = particles.inv_mass
     pair_first, pair_second = contacts.first, contacts.second
     any_overlap = False
-    for k in range(pair_first.size):
+    for k in order:
         a, b = pair_first[k], pair_second[k]
         nx, ny, nz, distance = line_of_action(
             position[a, 0] - position[b, 0], position[a, 1] - position[b, 1],
@@ -139,14 +180,10 @@ def _separate_in_turn(particles, contacts, hold, walls):
             continue
         any_overlap = True
         w_a, w_b = inv_mass[a], inv_mass[b]
-        if hold:
-            share = depth / (w_a + w_b)
-            sx, sy, sz = share * nx, share * ny, share * nz
-            held_a = _held(particles, a, (w_a * sx, w_a * sy, w_a * sz), (nx, ny, nz), walls)
-            held_b = _held(particles, b, (-(w_b * sx), -(w_b * sy), -(w_b * sz)),
-                           (-nx, -ny, -nz), walls)
-            w_a, w_b = (0.0 if (held_a and not held_b and w_b > 0.0) else w_a,
-                        0.0 if (held_b and not held_a and w_a > 0.0) else w_b)
+        if level[a] < level[b] and w_b > 0.0:
+            w_a = 0.0
+        elif level[b] < level[a] and w_a > 0.0:
+            w_b = 0.0
         w_sum = w_a + w_b
         if not w_sum > 0.0:
             continue
@@ -172,7 +209,7 @@ def _clamp_inside(particles, dynamic, walls):
 
 
 @njit(cache=True, nogil=True)
-def project_overlaps(particles, dynamic, contacts, walls, passes, hold, in_turn):
+def project_overlaps(particles, dynamic, contacts, walls, floors, passes, hold, in_turn):
     """Run the separation stage's projection on ``particles.position`` in place.
 
     ``passes`` Jacobi passes: the first on the narrowphase's normals and
@@ -180,15 +217,19 @@ def project_overlaps(particles, dynamic, contacts, walls, passes, hold, in_turn)
     penetration), each later one on the pairs still overlapping, measured
     again; with walls present the particles are clamped back inside after
     each pass. ``hold``: a particle its push would take into a wall stays
-    put. ``in_turn``: Gauss-Seidel passes instead (``_separate_in_turn``),
-    stopping early once no pair overlaps.
+    put. ``floors``: per wall plane, whether it holds particles up against
+    gravity. ``in_turn`` (under gravity): Gauss-Seidel passes instead
+    (``_separate_in_turn``), the pairs nearest a support first, stopping
+    early once no pair overlaps.
     """
     position, velocity, radius = particles.position, particles.velocity, particles.radius
     pair_first, pair_second = contacts.first, contacts.second
     n, m = position.shape[0], pair_first.size
     if in_turn:
+        level = support_levels(particles, dynamic, contacts, walls, floors)
+        order = support_order(contacts, level)
         for _ in range(passes):
-            overlapped = _separate_in_turn(particles, contacts, hold, walls) if m else False
+            overlapped = _separate_in_turn(particles, contacts, order, level) if m else False
             if walls.present:
                 _clamp_inside(particles, dynamic, walls)
             if not overlapped:
@@ -302,7 +343,8 @@ def warm_up() -> None:
                        np.zeros(1, dtype=np.int64), np.full(1, -10.0), np.ones(1))
     start = particles.position.copy()
     for in_turn in (False, True):
-        project_overlaps(particles, dynamic, contacts, walls, 2, True, in_turn)
+        project_overlaps(particles, dynamic, contacts, walls, np.ones(1, dtype=np.bool_), 2,
+                         True, in_turn)
     pay_for_lift(particles, dynamic, pair_first, pair_second, start, np.ones(2), np.zeros(2))
 
 

@@ -21,6 +21,7 @@ the same contacts and asserts identical velocities and bookings.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -34,7 +35,8 @@ from ...law.primitives import (apply_pair_normal, apply_tangential, apply_wall_n
                                friction_accumulated, into_cone, loss_share, pair_friction_spun,
                                push_pair, push_wall, RESTITUTION, spin_factor, STICK_FACTOR,
                                tangential_slip, WALLS)
-from ...model.tunables import WALL_SLOP
+from ...model.tunables import MIN_SUPPORT_ALIGNMENT, SUPPORT_SLOP, WALL_SLOP
+from ...step.step_kernels import spread_levels, UNSUPPORTED
 from .wall_kernels import WallPlanes
 
 # Cache keys are lower id * (MAX_CACHED_ID + 1) + higher id in int64: a world
@@ -58,6 +60,9 @@ class SolverSettings(NamedTuple):
     ahead: float             # m: wall contacts are found this far beyond the touching slop
     margin: float            # of r: and this many radii (0 with ``ahead`` 0: touching only)
     early_impacts: bool      # an impact found before it touches bounces now (no swept stage)
+    fall_x: float            # m/s: the velocity gravity adds in the (sub)step, g dt (0, 0, 0:
+    fall_y: float            # no gravity); cold resting contacts start from the static load
+    fall_z: float            # this weight puts on them (``_seed_loads``)
 
 
 class StepContacts(NamedTuple):
@@ -750,6 +755,117 @@ def _warm_from(cache, ids, pairs, walls, pair_impulses, wall_impulses):
 
 
 @njit(cache=True)
+def _incident(n, first, second):
+    """Return (start, contact): the contacts of particle p are contact[start[p]:start[p + 1]]."""
+    m = first.size
+    start = np.zeros(n + 1, dtype=np.int64)
+    for k in range(m):
+        start[first[k] + 1] += 1
+        start[second[k] + 1] += 1
+    for p in range(n):
+        start[p + 1] += start[p]
+    fill = start[:n].copy()
+    contact = np.empty(2 * m, dtype=np.int64)
+    for k in range(m):
+        contact[fill[first[k]]] = k
+        fill[first[k]] += 1
+        contact[fill[second[k]]] = k
+        fill[second[k]] += 1
+    return start, contact
+
+
+@njit(cache=True)
+def _seed_loads(bodies, dynamic, pairs, walls, pair_impulses, wall_impulses, settings):
+    """Start cold resting contacts from the static load they carry under gravity.
+
+    A contact the cache does not hold starts from 0, and Gauss-Seidel sweeps
+    pass a column's weight down one contact per sweep: a stack that starts
+    touching sinks for many steps. Here each particle's weight for the step
+    (m g dt, N s) plus the load resting on it goes down to its supports,
+    the touching contacts with a particle one level nearer a floor or a
+    static particle (``spread_levels``; touching: a gap of at most
+    SUPPORT_SLOP of r) and below it, shared equally; a
+    floor takes a level-0 particle's load. A cold contact that is not an
+    impact starts from its share along its normal. The sweeps correct the
+    estimate and take back what opens, so it changes how fast the solve
+    converges, not the constraints it converges to.
+    """
+    v, inv_mass = bodies.velocity, bodies.inv_mass
+    fall = math.sqrt(settings.fall_x ** 2 + settings.fall_y ** 2 + settings.fall_z ** 2)
+    if not fall > 0.0:
+        return
+    up = (-settings.fall_x / fall, -settings.fall_y / fall, -settings.fall_z / fall)
+    n, m = v.shape[0], pairs.first.size
+    level = np.full(n, UNSUPPORTED, dtype=np.int64)
+    for p in range(n):
+        if not dynamic[p]:
+            level[p] = 0
+    radius, dt = bodies.radius, settings.dt
+    for c in range(walls.particle.size):
+        p = walls.particle[c]
+        if walls.allowance[c] * dt <= SUPPORT_SLOP * radius[p] \
+                and walls.inward[c] * up[walls.axis[c]] >= MIN_SUPPORT_ALIGNMENT:
+            level[p] = 0
+    touching = np.empty(m, dtype=np.int64)
+    count = 0
+    for k in range(m):
+        a, b = pairs.first[k], pairs.second[k]
+        if pairs.allowance[k] * dt <= SUPPORT_SLOP * min(radius[a], radius[b]):
+            touching[count] = k
+            count += 1
+    touching = touching[:count]
+    first, second = pairs.first[touching], pairs.second[touching]
+    spread_levels(level, first, second)
+    start, incident = _incident(n, first, second)
+    load = np.zeros(n)
+    key = np.empty(n, dtype=np.int64)
+    for p in range(n):
+        if dynamic[p]:
+            load[p] = fall / inv_mass[p]
+        key[p] = -1 if level[p] == UNSUPPORTED else level[p]
+    order = np.argsort(key, kind='mergesort')
+    normal, resting = pairs.normal, pair_impulses.resting
+    for s in range(n - 1, -1, -1):
+        p = order[s]
+        if key[p] < 1 or not dynamic[p]:
+            continue
+        supports = 0
+        for t in range(start[p], start[p + 1]):
+            k = touching[incident[t]]
+            q = pairs.second[k] if pairs.first[k] == p else pairs.first[k]
+            side = 1.0 if pairs.first[k] == p else -1.0
+            along = side * dot3(normal[k, 0], normal[k, 1], normal[k, 2], up[0], up[1], up[2])
+            if level[q] == level[p] - 1 and along >= MIN_SUPPORT_ALIGNMENT:
+                supports += 1
+        if supports == 0:
+            continue
+        share = load[p] / supports
+        for t in range(start[p], start[p + 1]):
+            k = touching[incident[t]]
+            a, b = pairs.first[k], pairs.second[k]
+            q = b if a == p else a
+            side = 1.0 if a == p else -1.0
+            nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
+            along = side * dot3(nx, ny, nz, up[0], up[1], up[2])
+            if not (level[q] == level[p] - 1 and along >= MIN_SUPPORT_ALIGNMENT):
+                continue
+            load[q] += share
+            approach = -dot3(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2],
+                             nx, ny, nz)
+            if resting[k] == 0.0 and approach < settings.threshold:
+                resting[k] = share / along
+    for c in range(walls.particle.size):
+        p, axis, inward = walls.particle[c], walls.axis[c], walls.inward[c]
+        along = inward * up[axis]
+        if walls.allowance[c] * dt > SUPPORT_SLOP * radius[p] or along < MIN_SUPPORT_ALIGNMENT \
+                or level[p] != 0 or not dynamic[p]:
+            continue
+        approach = -inward * v[p, axis]
+        if wall_impulses.resting[c] == 0.0 and approach < settings.threshold:
+            wall_impulses.resting[c] = load[p] / along
+
+
+@njit(cache=True)
 def _kept(ids, pairs, walls, pair_impulses, wall_impulses, keyed):
     """Return this solve's cache: the contacts holding resting impulse, sorted by key."""
     first, second = pairs.first, pairs.second
@@ -849,6 +965,8 @@ def _solve_step(bodies, position, ids, contacts, planes, coefficients, settings,
             keyed = False
     if keyed:
         _warm_from(cache, ids, pairs, walls, pair_impulses, wall_impulses)
+    if settings.accumulate:
+        _seed_loads(bodies, dynamic, pairs, walls, pair_impulses, wall_impulses, settings)
     warm = n if settings.accumulate else 0
     marks = ParticleMarks(dynamic, np.zeros(n, dtype=np.bool_), np.zeros(n),
                           np.zeros((warm, 3)), np.zeros(warm, dtype=np.bool_))
@@ -988,7 +1106,7 @@ def warm_up() -> None:
     floor = WallPlanes(np.zeros(1, dtype=np.int64), np.zeros(1), np.ones(1), np.zeros(1))
     coefficients = Coefficients(none, none, 1.0, 1.0, 1.0)
     settings = SolverSettings(True, 0.1, 1e-4, 10.0, 4, True, True, True, False, 0.01, 1e-3,
-                              0.02, True)
+                              0.02, True, 0.0, -0.1, 0.0)
     cache = WarmStartCache(np.array([1], dtype=np.int64), np.ones(1), np.ones((1, 3)),
                            np.array([3], dtype=np.int64), np.ones(1), np.ones((1, 3)))
     solve_step(tuple(bodies), position, ids, tuple(contacts), tuple(floor),

@@ -161,6 +161,15 @@ class SequentialImpulseStage(Stage):
         # Sweeps run, summed over the solves, and in the last solve.
         self.sweeps = self.solves = self.last_sweeps = 0
 
+    @staticmethod
+    def _fall(ctx: StepContext) -> tuple:
+        """Return g dt of the (sub)step, m/s per axis (zeros without gravity)."""
+        gravity = ctx.effects.gravity
+        if gravity is None:
+            return (0.0, 0.0, 0.0)
+        g = np.asarray(gravity, dtype=float)
+        return (float(g[0] * ctx.dt), float(g[1] * ctx.dt), float(g[2] * ctx.dt))
+
     def run(self, ctx: StepContext) -> None:
         """Apply the law's impulses in place, count the contacts hit, book and record them.
 
@@ -203,7 +212,8 @@ class SequentialImpulseStage(Stage):
             float(STRIKE_FACTOR), int(self.iterations), friction, ctx.dimensions == 2,
             self.warm_start and threshold > 0.0, colours, float(ctx.dt),
             float(threshold * ctx.dt) if speculative else 0.0,
-            float(SPECULATIVE_MARGIN) if speculative else 0.0, bool(self.early_impacts))
+            float(SPECULATIVE_MARGIN) if speculative else 0.0, bool(self.early_impacts),
+            *self._fall(ctx))
         coefficients = Coefficients(
             _own(state.restitution), _own(state.friction) if friction else _NO_VALUES,
             float(self.restitution),
