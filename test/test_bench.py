@@ -67,10 +67,12 @@ def test_pile_bench_rows_and_pymunk_missing_message(capsys, monkeypatch):
     import sys
     # A None entry makes ``import pymunk`` raise ImportError, installed or not.
     monkeypatch.setitem(sys.modules, 'pymunk', None)
+    monkeypatch.setitem(sys.modules, 'mujoco', None)
     assert bench.main(['pile', '--steps', '3', '--presets', 'fast', 'exact',
                        '--count3d', '60', '--steps3d', '2']) == 0
     out = capsys.readouterr().out
     assert 'pymunk not installed (pip install pymunk==7.x): comparison row skipped' in out
+    assert 'mujoco not installed (pip install -r bench-requirements.txt)' in out
     rows = _table(out)
     fast, exact, pour = rows
     assert fast[0] == 'fast' and fast[1] == '3' and float(fast[2]) > 0
@@ -78,6 +80,55 @@ def test_pile_bench_rows_and_pymunk_missing_message(capsys, monkeypatch):
     assert float(fast[6]) > 0.164 and fast[7] == 'no'
     assert exact[0] == 'exact' and 'cannot simulate friction' in exact[1]
     assert pour[0] == 'balanced' and pour[1] == '2' and float(pour[4]) > 0
+    # Still falling after 2 steps: no overlap (contacts only where the lattice meets a
+    # wall); the top is the pour's.
+    assert pour[8:10] == ['0', '0'] and int(pour[10]) >= 0 and float(pour[11]) > 0.5
+
+
+def test_pile_bench_writes_json(tmp_path, monkeypatch, capsys):
+    import json
+    import sys
+    monkeypatch.setitem(sys.modules, 'pymunk', None)
+    monkeypatch.setitem(sys.modules, 'mujoco', None)
+    out = tmp_path / 'pile.json'
+    assert bench.main(['pile', '--steps', '2', '--presets', 'fast', '--count3d', '30',
+                       '--steps3d', '1', '--out', str(out)]) == 0
+    document = json.loads(out.read_text())
+    assert document['command'].startswith('python -m collision_node.bench pile ')
+    assert '--count3d 30' in document['command']
+    (fast,) = document['pile2d']['rows']
+    assert fast['label'] == 'fast' and fast['steps'] == 2 and fast['ms'] > 0
+    (pour,) = document['pile3d']['rows']
+    assert pour['label'] == 'balanced' and pour['steps'] == 1
+    assert pour['pairs_over_0.01r'] == 0 and pour['real_time'] > 0
+
+
+def test_pile_quality_counts_overlaps_and_contacts():
+    import numpy as np
+    from collision_node.bench.pile import pile_quality
+    r = 0.05
+    # Pairs 0-1 overlap by 2 % of r, 2-3 by 20 %, 4-5 touch within 0.5 % r; 6 rests on the floor.
+    x = [0.0, 2 * r - 0.02 * r, 1.0, 1.0 + 2 * r - 0.2 * r, 2.0, 2.0 + 2 * r + 0.005 * r, 3.0]
+    position = np.array([[v, 1.0] for v in x[:6]] + [[x[6], r]])
+    quality = pile_quality(position, np.zeros((7, 2)), np.full(7, r),
+                           np.array([-10.0, 0.0, -np.inf]), np.array([10.0, 10.0, np.inf]), 2)
+    assert quality['pairs_over_0.01r'] == 2 and quality['pairs_over_0.1r'] == 1
+    assert quality['contacts'] == 4 and quality['top'] == pytest.approx(1.0 + r)
+    assert quality['overlap_pairs_r'] == pytest.approx(0.2)
+
+
+def test_stacks_bench_rows_and_json(tmp_path, capsys):
+    import json
+    out = tmp_path / 'stacks.json'
+    assert bench.main(['stacks', '--presets', 'fast', 'exact', '--cases', 'cluster',
+                       '--out', str(out)]) == 0
+    text = capsys.readouterr().out
+    assert 'refused: ' in text and 'cannot simulate friction' in text
+    rows = json.loads(out.read_text())['rows']
+    fast, exact = rows
+    assert fast['case'] == 'cluster' and fast['steps'] == 120 and fast['collisions'] > 0
+    assert 0.0 <= fast['momentum_error'] < 1.0
+    assert exact['preset'] == 'exact' and 'cannot simulate friction' in exact['skipped']
 
 
 def test_pile_quality_measures_overlap_and_speed():

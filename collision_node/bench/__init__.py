@@ -32,6 +32,7 @@ SUBCOMMANDS: dict[str, str] = {
     'node-start': 'collision_node.bench.node_start',
     'resting': 'collision_node.bench.resting',
     'report': 'collision_node.bench.results.page',
+    'stacks': 'collision_node.bench.stacks',
 }
 # Subcommands that write files of their own instead of a results file (as does any
 # subcommand that declares an --out of its own).

@@ -19,16 +19,26 @@ gets sqrt(e) and sqrt(mu); its allowed overlap (``collision_slop``) is set
 to 1 % of the radius (its default, 0.1, is meant for pixels).
 
 The second table (skip it with ``--no-3d``) pours ``--count3d`` spheres
-(default 10,000, r = 5 cm, same materials) into a box at dt = 1/60 s under
-``balanced`` and reports the real-time factor (simulated over wall
-seconds, one process, one core) over ``--steps3d`` steps (default 60:
-1 s; the pour takes about 2 s to land, so longer runs include the settled
-pile). ``--profile`` adds every run's wall time per stage (``World.profile``).
+(default 10,000, r = 5 cm, m = 0.1 kg, e = 0.3, mu = 0.5) into a 2.53 m
+square box (``scenarios.pour3d``) at dt = 1/60 s under ``balanced`` for
+``--steps3d`` steps (default 240: 4 s, the pour and its settling) and
+reports ms per step, the real-time factor (simulated over wall seconds,
+one process, one core), the deepest overlap at the end over r, the pairs
+overlapping by more than 1 % and 10 % of r, the contacts (pairs and wall
+contacts closer than 1 % of r) and the pile's top. If MuJoCo is installed
+(``pip install -r bench-requirements.txt``; never a dependency of the
+package or the tests), the same spheres, box, mu and dt run in MuJoCo
+(PGS solver, its default soft contact, which has no restitution) as a
+comparison row, stopped after ``--max-seconds`` like every run; without
+it the row is skipped with a printed note. ``--out FILE.json`` writes
+every row, the command and the machine as JSON. ``--profile`` adds every
+run's wall time per stage (``World.profile``).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import platform
@@ -39,14 +49,24 @@ import numpy as np
 
 from ..physics.step.kernels import prepare as prepare_kernels
 from ..physics.step.reference import end_penetration
-from ..physics.model.scene import load_scene, parse_scene
+from ..physics.model.scene import load_scene
 from ..physics.model.validation import SceneError
 from ..physics.step.world import World
+from ..physics.stages.detection.broadphase import candidate_pairs
+from ..scenarios import pour3d
 
 PRESETS = ('fast', 'balanced', 'accurate', 'exact')
 PYMUNK_MISSING = 'pymunk not installed (pip install pymunk==7.x): comparison row skipped'
+MUJOCO_MISSING = ('mujoco not installed (pip install -r bench-requirements.txt): '
+                  'comparison row skipped')
 # pymunk's allowed overlap as a fraction of the disc radius.
 PYMUNK_SLOP_RADII = 0.01
+# Overlaps counted, as fractions of the radius; and the gap below which two
+# particles (or a particle and a wall) count as a contact, over the radius.
+OVERLAP_COUNTS_RADII = (0.01, 0.1)
+CONTACT_GAP_RADII = 0.01
+# MuJoCo's arena for the 3-D pour (its constraint rows for 10^4 spheres).
+MUJOCO_MEMORY = '4G'
 
 
 def wall_penetration(position: np.ndarray, radius: np.ndarray, low: np.ndarray,
@@ -62,7 +82,13 @@ def wall_penetration(position: np.ndarray, radius: np.ndarray, low: np.ndarray,
 
 def pile_quality(position: np.ndarray, velocity: np.ndarray, radius: np.ndarray,
                  low: np.ndarray, high: np.ndarray, dimensions: int) -> dict:
-    """Return the deepest overlap over the radius and the fastest particle's speed."""
+    """Return the deepest overlap over the radius, overlap and contact counts, the top, speed.
+
+    ``pairs_over_*`` count the pairs overlapping by more than that fraction
+    of the (median) radius; ``contacts`` the pairs and particle-wall pairs
+    closer than CONTACT_GAP_RADII of it; ``top`` the highest point (max of
+    y + r), m.
+    """
     from ..physics.model.state import ParticleState
     n = position.shape[0]
     padded = np.zeros((n, 3))
@@ -72,8 +98,19 @@ def pile_quality(position: np.ndarray, velocity: np.ndarray, radius: np.ndarray,
     pairs = end_penetration(state)
     walls = wall_penetration(padded, radius, low, high, dimensions)
     scale = float(np.median(radius))
-    return {'overlap_pairs_r': pairs / scale, 'overlap_walls_r': walls / scale,
-            'fastest': float(np.max(np.linalg.norm(velocity, axis=1)))}
+    i, j = candidate_pairs(padded, radius + 0.5 * CONTACT_GAP_RADII * scale)
+    gap = np.linalg.norm(padded[i] - padded[j], axis=1) - (radius[i] + radius[j])
+    x, r = padded[:, :dimensions], radius[:, None]
+    wall_gap = np.concatenate([(x - r - low[:dimensions]).ravel(),
+                               (high[:dimensions] - (x + r)).ravel()])
+    out = {'overlap_pairs_r': pairs / scale, 'overlap_walls_r': walls / scale,
+           'fastest': float(np.max(np.linalg.norm(velocity, axis=1))),
+           'contacts': int(np.count_nonzero(gap < CONTACT_GAP_RADII * scale)
+                           + np.count_nonzero(wall_gap < CONTACT_GAP_RADII * scale)),
+           'top': float(np.max(padded[:, 1] + radius))}
+    for fraction in OVERLAP_COUNTS_RADII:
+        out[f'pairs_over_{fraction:g}r'] = int(np.count_nonzero(-gap > fraction * scale))
+    return out
 
 
 def run_preset(scene, preset: str, steps: int, max_seconds: float) -> dict:
@@ -149,35 +186,79 @@ def run_pymunk(scene, steps: int) -> Optional[dict]:
                 ms=1e3 * wall / steps, cpu_ms=1e3 * cpu / steps)
 
 
-def pile3d_scene(count: int, radius: float = 0.05) -> dict:
-    """Return a 3-D pour of ``count`` spheres into a box about ten layers deep."""
-    side = math.sqrt(count / 10.0) * 2.0 * radius          # ~10 layers when settled
-    spacing = 2.0 * radius * 1.05
-    layers = math.ceil(count / (math.floor(side / spacing) ** 2)) + 1
-    top = 0.5 + layers * spacing
-    return {
-        'name': f'pile3d_{count}', 'dimensions': 3, 'dt': 1.0 / 60.0,
-        'effects': {'gravity': [0.0, -9.81, 0.0], 'restitution': 0.3, 'friction': 0.5,
-                    'walls': {'min': [0.0, 0.0, 0.0], 'max': [side, top + 1.0, side],
-                              'restitution': 0.3}},
-        'generate': [{'kind': 'gas', 'count': count, 'radius': radius, 'mass': 0.1,
-                      'speed': 1.0, 'seed': 5,
-                      'region': {'min': [0.0, 0.5, 0.0], 'max': [side, top, side]}}],
-    }
-
-
-def run_pile3d(count: int, steps: int, preset: str) -> dict:
+def run_pile3d(count: int, steps: int, preset: str, max_seconds: float = math.inf) -> dict:
     """Pour the 3-D pile under ``preset``; return the real-time factor and quality."""
-    scene = parse_scene(dict(pile3d_scene(count), accuracy=preset), 'bench pile3d')
+    scene = pour3d(count, accuracy=preset)
     world = World(scene)
-    start, cpu_start = time.perf_counter(), time.process_time()
-    world.step(steps)
-    wall, cpu = time.perf_counter() - start, time.process_time() - cpu_start
+    done, wall, cpu = 0, 0.0, 0.0
+    while done < steps and wall < max_seconds:
+        start, cpu_start = time.perf_counter(), time.process_time()
+        world.step()
+        wall += time.perf_counter() - start
+        cpu += time.process_time() - cpu_start
+        done += 1
     s, walls = world.state, scene.effects.walls
     quality = pile_quality(s.position, s.velocity, s.radius, walls.low, walls.high, 3)
-    return dict(quality, label=preset, steps=steps, ms=1e3 * wall / steps,
-                cpu_ms=1e3 * cpu / steps, real_time=steps * scene.dt / wall,
-                cpu_real_time=steps * scene.dt / cpu, profile=world.profile())
+    return dict(quality, label=preset, steps=done, ms=1e3 * wall / done,
+                cpu_ms=1e3 * cpu / done, real_time=done * scene.dt / wall,
+                cpu_real_time=done * scene.dt / cpu, profile=world.profile())
+
+
+def mujoco_model(scene) -> str:
+    """Return MJCF for ``scene``'s spheres as free bodies in its box of walls (planes)."""
+    s, walls = scene.initial, scene.effects.walls
+    mu = scene.effects.friction or 0.0
+    g = ' '.join(f'{c:.17g}' for c in scene.effects.gravity)
+    planes = []
+    for axis in range(3):
+        for bound, sign in ((walls.low[axis], 1.0), (walls.high[axis], -1.0)):
+            if math.isfinite(bound):
+                normal, pos = [0.0] * 3, [0.0] * 3
+                normal[axis], pos[axis] = sign, float(bound)
+                planes.append(f'<geom type="plane" size="0 0 1" pos="{_xyz(pos)}" '
+                              f'zaxis="{_xyz(normal)}" friction="{mu:.17g} 0 0"/>')
+    bodies = [f'<body pos="{_xyz(s.position[k])}"><freejoint/><geom type="sphere" '
+              f'size="{float(s.radius[k]):.17g}" mass="{1.0 / float(s.inv_mass[k]):.17g}" '
+              f'friction="{mu:.17g} 0 0"/></body>' for k in range(len(s))]
+    return (f'<mujoco><size memory="{MUJOCO_MEMORY}"/>'
+            f'<option timestep="{scene.dt:.17g}" gravity="{g}" solver="PGS"/>'
+            f'<worldbody>{"".join(planes)}{"".join(bodies)}</worldbody></mujoco>')
+
+
+def _xyz(vector) -> str:
+    """Return three numbers as MJCF writes them."""
+    return ' '.join(f'{float(c):.17g}' for c in vector[:3])
+
+
+def run_mujoco(count: int, steps: int, max_seconds: float) -> Optional[dict]:
+    """Run the 3-D pour in MuJoCo; return the row, or None if mujoco is missing."""
+    try:
+        import mujoco
+    except ImportError:
+        return None
+    scene = pour3d(count)
+    model = mujoco.MjModel.from_xml_string(mujoco_model(scene))
+    data = mujoco.MjData(model)
+    n = len(scene.initial)
+    # Each free joint: 3 translational then 3 rotational velocities.
+    qvel = data.qvel.reshape(n, 6)
+    qvel[:, :3] = scene.initial.velocity
+    done, wall, cpu, contacts = 0, 0.0, 0.0, 0
+    while done < steps and wall < max_seconds:
+        start, cpu_start = time.perf_counter(), time.process_time()
+        mujoco.mj_step(model, data)
+        wall += time.perf_counter() - start
+        cpu += time.process_time() - cpu_start
+        contacts = max(contacts, int(data.ncon))
+        done += 1
+    position = data.qpos.reshape(n, 7)[:, :3].copy()
+    velocity = data.qvel.reshape(n, 6)[:, :3].copy()
+    walls = scene.effects.walls
+    quality = pile_quality(position, velocity, scene.initial.radius, walls.low, walls.high, 3)
+    return dict(quality, label=f'MuJoCo {mujoco.__version__} (PGS)', steps=done,
+                ms=1e3 * wall / done, cpu_ms=1e3 * cpu / done,
+                real_time=done * scene.dt / wall, cpu_real_time=done * scene.dt / cpu,
+                solver_contacts_max=contacts, solver_contacts_end=int(data.ncon))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -190,10 +271,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--no-pymunk', action='store_true', help='skip the pymunk row')
     parser.add_argument('--no-3d', action='store_true', help='skip the 3-D pile')
     parser.add_argument('--count3d', type=int, default=10_000, help='spheres of the 3-D pile')
-    parser.add_argument('--steps3d', type=int, default=60,
-                        help='steps of the 3-D pile at dt = 1/60 (default 60: 1 s)')
+    parser.add_argument('--steps3d', type=int, default=240,
+                        help='steps of the 3-D pile at dt = 1/60 (default 240: 4 s)')
     parser.add_argument('--presets3d', nargs='+', default=['balanced'], choices=PRESETS[:3],
                         help='presets of the 3-D pile (default: balanced)')
+    parser.add_argument('--no-mujoco', action='store_true', help='skip the MuJoCo row')
+    parser.add_argument('--out', metavar='FILE.json',
+                        help='also write every row, the command and the machine as JSON')
     parser.add_argument('--profile', action='store_true',
                         help='after each table, the wall time per stage of every run '
                              '(the first step apart)')
@@ -228,37 +312,89 @@ def run(args: argparse.Namespace) -> int:
     print()
     print(f'| run | steps | ms per step | CPU ms per step | deepest overlap / r (discs) '
           f'| deepest overlap / r (walls) | fastest disc m/s | below threshold '
-          f'{threshold:.3g} m/s |')
-    print('|---|---:|---:|---:|---:|---:|---:|---|')
+          f'{threshold:.3g} m/s | pairs over 1 % r |')
+    print('|---|---:|---:|---:|---:|---:|---:|---|---:|')
     for row in rows:
         if 'skipped' in row:
-            print(f'| {row["label"]} | not run: {row["skipped"]} | | | | | | |')
+            print(f'| {row["label"]} | not run: {row["skipped"]} | | | | | | | |')
             continue
         print(f'| {row["label"]} | {row["steps"]} | {row["ms"]:.3g} | {row["cpu_ms"]:.3g} '
               f'| {row["overlap_pairs_r"]:.3g} | {row["overlap_walls_r"]:.3g} '
-              f'| {row["fastest"]:.3g} | {"yes" if row["fastest"] < threshold else "no"} |')
+              f'| {row["fastest"]:.3g} | {"yes" if row["fastest"] < threshold else "no"} '
+              f'| {row["pairs_over_0.01r"]} |')
     if args.profile:
         print_profiles('2-D pile', rows)
-    if args.no_3d:
-        return 0
+    rows3d = [] if args.no_3d else run_3d(args)
+    if args.out:
+        pile3d = None if args.no_3d else {'count': args.count3d, 'steps': args.steps3d,
+                                          'dt': 1.0 / 60.0, 'rows': rows3d}
+        write_json(args.out, args, {'pile2d': {'scene': 'pile', 'steps': args.steps,
+                                               'rows': rows}, 'pile3d': pile3d})
+    return 0
+
+
+def run_3d(args: argparse.Namespace) -> list:
+    """Pour the 3-D pile under each preset (and MuJoCo); print its table, return the rows."""
     print()
-    print(f'3-D pile: {args.count3d} spheres (r = 5 cm, e = 0.3, mu = 0.5) poured into a box, '
-          f'dt = 1/60 s, {args.steps3d} steps; {_load_line()}')
+    scene = pour3d(args.count3d)
+    side = float(scene.effects.walls.high[0])
+    print(f'3-D pile: {args.count3d} spheres (r = 5 cm, m = 0.1 kg, e = 0.3, mu = 0.5) poured '
+          f'into a {side:.3g} m square box, dt = 1/60 s, {args.steps3d} steps; {_load_line()}')
+    rows3d = [run_pile3d(args.count3d, args.steps3d, preset, args.max_seconds)
+              for preset in args.presets3d]
+    if not args.no_mujoco:
+        reference = run_mujoco(args.count3d, args.steps3d, args.max_seconds)
+        if reference is None:
+            print(MUJOCO_MISSING)
+        else:
+            rows3d.append(reference)
     print()
-    print('| preset | steps | ms per step | CPU ms per step | real-time factor '
-          '| real-time factor (CPU) | deepest overlap / r | fastest sphere m/s |')
-    print('|---|---:|---:|---:|---:|---:|---:|---:|')
-    rows3d = []
-    for preset in args.presets3d:
-        row = run_pile3d(args.count3d, args.steps3d, preset)
-        print(f'| {preset} | {row["steps"]} | {row["ms"]:.4g} | {row["cpu_ms"]:.4g} '
+    print('| run | steps | ms per step | CPU ms per step | real-time factor '
+          '| real-time factor (CPU) | deepest overlap / r | fastest sphere m/s '
+          '| pairs over 1 % r | pairs over 10 % r | contacts (gap < 1 % r) | top m |')
+    print('|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|')
+    for row in rows3d:
+        print(f'| {row["label"]} | {row["steps"]} | {row["ms"]:.4g} | {row["cpu_ms"]:.4g} '
               f'| {row["real_time"]:.3g} | {row["cpu_real_time"]:.3g} '
               f'| {max(row["overlap_pairs_r"], row["overlap_walls_r"]):.3g} '
-              f'| {row["fastest"]:.3g} |')
-        rows3d.append(row)
+              f'| {row["fastest"]:.3g} | {row["pairs_over_0.01r"]} | {row["pairs_over_0.1r"]} '
+              f'| {row["contacts"]} | {row["top"]:.3f} |')
     if args.profile:
         print_profiles('3-D pile', rows3d)
-    return 0
+    return rows3d
+
+
+def command_line(args: argparse.Namespace) -> str:
+    """Return the command that reproduces ``args`` (every option spelled out)."""
+    words = ['python -m collision_node.bench', args.command]
+    for key, value in sorted(vars(args).items()):
+        if key == 'command' or value is None or value is False:
+            continue
+        option = '--' + key.replace('_', '-')
+        if value is True:
+            words.append(option)
+        elif isinstance(value, (list, tuple)):
+            words += [option, *map(str, value)]
+        else:
+            words += [option, str(value)]
+    return ' '.join(words)
+
+
+def write_json(path: str, args: argparse.Namespace, results: dict) -> None:
+    """Write ``results`` with the command line, the date and the machine to ``path``."""
+    def plain(row: dict) -> dict:
+        return {key: value for key, value in row.items() if key != 'profile'}
+
+    for part in results.values():
+        if part is not None:
+            part['rows'] = [plain(row) for row in part['rows']]
+    document = {'command': command_line(args),
+                'date': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
+                'machine': _load_line(), **results}
+    with open(path, 'w', encoding='utf-8') as out:
+        json.dump(document, out, indent=1, sort_keys=True)
+        out.write('\n')
+    print(f'wrote {path}')
 
 
 def print_profiles(title: str, rows: list) -> None:
