@@ -117,18 +117,36 @@ def test_pile_quality_counts_overlaps_and_contacts():
     assert quality['overlap_pairs_r'] == pytest.approx(0.2)
 
 
-def test_stacks_bench_rows_and_json(tmp_path, capsys):
+def _recorded_tables(path) -> list[dict]:
+    """Return the tables a results file recorded, in the order printed."""
     import json
+    data = json.loads(path.read_text())
+    assert data['format'] == 1 and data['exit_code'] == 0
+    return [block for block in data['output'] if block['kind'] == 'table']
+
+
+def test_stacks_bench_records_its_tables(tmp_path, capsys):
     out = tmp_path / 'stacks.json'
-    assert bench.main(['stacks', '--presets', 'fast', 'exact', '--cases', 'cluster',
+    assert bench.main(['stacks', '--presets', 'fast', 'exact', '--cases', 'cluster', 'column',
                        '--out', str(out)]) == 0
-    text = capsys.readouterr().out
-    assert 'refused: ' in text and 'cannot simulate friction' in text
-    rows = json.loads(out.read_text())['rows']
-    fast, exact = rows
-    assert fast['case'] == 'cluster' and fast['steps'] == 120 and fast['collisions'] > 0
-    assert 0.0 <= fast['momentum_error'] < 1.0
-    assert exact['preset'] == 'exact' and 'cannot simulate friction' in exact['skipped']
+    captured = capsys.readouterr()
+    assert 'refused: ' in captured.out and 'cannot simulate friction' in captured.out
+    assert 'cluster under fast: done' in captured.err      # progress: not in the results
+    columns, table = _recorded_tables(out)
+    # The column: exact keeps its top at the exact height, both rows give it.
+    assert columns['columns'][:5] == ['case', 'preset', 'steps', 'ms per step',
+                                      'CPU ms per step']
+    assert columns['columns'][5:] == ['top m', 'exact top m', 'top error / r',
+                                      'largest error / r']
+    assert [row[:3] for row in columns['rows']] == [['column', 'fast', '600'],
+                                                    ['column', 'exact', '600']]
+    assert abs(float(columns['rows'][1][7])) < 1e-6
+    assert table['columns'] == ['case', 'preset', 'steps', 'ms per step', 'CPU ms per step',
+                                'collisions', 'momentum error']
+    fast, exact = table['rows']
+    assert fast[:3] == ['cluster', 'fast', '120'] and float(fast[3]) > 0
+    assert int(fast[5]) > 0 and 0.0 <= float(fast[6]) < 1.0
+    assert exact[:3] == ['cluster', 'exact', 'refused'] and exact[3:] == [''] * 4
 
 
 def test_pile_quality_measures_overlap_and_speed():

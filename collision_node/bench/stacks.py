@@ -1,9 +1,10 @@
 """Stacks: do columns, pyramids and piles stand, wake and conserve, per preset.
 
-``python -m collision_node.bench stacks [--presets ...] [--cases ...] [--out FILE.json]``
+``python -m collision_node.bench stacks [--presets ...] [--cases ...]``
 runs the stack scenarios of ``collision_node.scenarios`` under each preset
 (``exact`` where it accepts the scene: it refuses friction) and prints one
-table of outcomes and one of ms per step:
+Markdown table per kind of case, one row per case and preset, each with the
+steps, the wall and CPU ms per step and the case's outcomes:
 
 - ``column``: 20 spheres on a floor, touching exactly (dt = 1/60 s), 10 s:
   the top centre's height error over r at the end, and its largest over the run;
@@ -20,15 +21,18 @@ table of outcomes and one of ms per step:
   random directions, falling without walls for 120 steps: the largest relative
   error of the momentum against p0 + M g t over the steps.
 
-Limits of what the numbers say: one run each, wall time on a shared machine.
+A preset that refuses a scene gives a row saying so, the reason printed
+below the tables. ``--out FILE`` / ``--results-dir [DIR]`` (the dispatcher's)
+record the tables as JSON. Limits of what the numbers say: one run each, on
+a shared machine.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
+import sys
 import time
-from typing import Callable
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -37,7 +41,7 @@ from ..physics.step.kernels import prepare as prepare_kernels
 from ..physics.step.world import World
 from ..scenarios import (PILE_SETTLE_STEPS, STACK_DT, STACK_RADIUS, column_top, disc_pyramid,
                          drop_ball, falling_cluster, shipped_pile, sphere_column)
-from .pile import _load_line, command_line, pile_quality
+from .pile import _load_line, pile_quality
 
 PRESETS = ('fast', 'balanced', 'accurate', 'exact')
 # Steps of the column and the pyramid: 10 s at dt = 1/60 s.
@@ -54,16 +58,26 @@ CASES = ('column', 'column_5cm', 'pyramid', 'pyramid_mu0', 'pile', 'drop_pile', 
          'cluster')
 
 
-def timed_steps(world: World, steps: int, each: Callable[[World], None] = None) -> float:
-    """Step ``world`` ``steps`` times calling ``each`` after every step; return wall s of steps."""
-    wall = 0.0
+def timed_steps(world: World, steps: int,
+                each: Optional[Callable[[World], None]] = None) -> tuple[float, float]:
+    """Step ``world`` ``steps`` times calling ``each`` after every step.
+
+    Returns the wall and the CPU seconds of the steps (``each`` not counted).
+    """
+    wall, cpu = 0.0, 0.0
     for _ in range(steps):
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         world.step()
         wall += time.perf_counter() - start
+        cpu += time.process_time() - cpu_start
         if each is not None:
             each(world)
-    return wall
+    return wall, cpu
+
+
+def _times(seconds: tuple[float, float], steps: int) -> dict:
+    """Return the steps and the wall and CPU ms per step of ``seconds`` (wall, CPU)."""
+    return {'steps': steps, 'ms': 1e3 * seconds[0] / steps, 'cpu_ms': 1e3 * seconds[1] / steps}
 
 
 def quality(world: World) -> dict:
@@ -83,13 +97,13 @@ def column(preset: str, radius: float = STACK_RADIUS) -> dict:
     def track(w: World) -> None:
         worst[0] = max(worst[0], abs(float(w.state.position[-1, 1]) - exact) / r)
 
-    wall = timed_steps(world, STACK_STEPS, track)
+    seconds = timed_steps(world, STACK_STEPS, track)
     top = float(world.state.position[-1, 1])
-    return {'top_m': top, 'exact_m': exact, 'top_error_r': (top - exact) / r,
-            'worst_error_r': worst[0], 'steps': STACK_STEPS, 'ms': 1e3 * wall / STACK_STEPS}
+    return dict(_times(seconds, STACK_STEPS), top_m=top, exact_m=exact,
+                top_error_r=(top - exact) / r, worst_error_r=worst[0])
 
 
-def pyramid(preset: str, friction) -> dict:
+def pyramid(preset: str, friction: Optional[float]) -> dict:
     """Stand the pyramid of 55 discs for 10 s; return the largest displacement over r."""
     world = World(disc_pyramid(friction=friction, accuracy=preset))
     start, r = world.state.position.copy(), float(world.state.radius[0])
@@ -99,27 +113,27 @@ def pyramid(preset: str, friction) -> dict:
         moved = np.linalg.norm(w.state.position - start, axis=1).max() / r
         worst[0] = max(worst[0], float(moved))
 
-    wall = timed_steps(world, STACK_STEPS, track)
+    seconds = timed_steps(world, STACK_STEPS, track)
     final = float(np.linalg.norm(world.state.position - start, axis=1).max()) / r
-    return {'displacement_r': final, 'worst_displacement_r': worst[0], 'steps': STACK_STEPS,
-            'ms': 1e3 * wall / STACK_STEPS}
+    return dict(_times(seconds, STACK_STEPS), displacement_r=final,
+                worst_displacement_r=worst[0])
 
 
 def pile(preset: str) -> dict:
     """Settle the shipped pile for 480 steps; return its deepest overlap, pairs over 1 % r."""
     world = World(shipped_pile(preset))
-    wall = timed_steps(world, PILE_SETTLE_STEPS)
-    return dict(quality(world), steps=PILE_SETTLE_STEPS, ms=1e3 * wall / PILE_SETTLE_STEPS)
+    seconds = timed_steps(world, PILE_SETTLE_STEPS)
+    return dict(quality(world), **_times(seconds, PILE_SETTLE_STEPS))
 
 
 def drop(world: World, settle_steps: int) -> dict:
     """Settle ``world``, drop a ball on it, step as long again: what moved, whether it rests."""
-    wall = timed_steps(world, settle_steps)
+    wall, cpu = timed_steps(world, settle_steps)
     before = world.state.position.copy()
     asleep_before = world.asleep_count
     r = float(world.state.radius[0])
     drop_ball(world, height=DROP_HEIGHT)
-    wall += timed_steps(world, settle_steps)
+    more = timed_steps(world, settle_steps)
     moved = np.linalg.norm(world.state.position[:len(before)] - before, axis=1) / r
     threshold = world.scene.effects.threshold(world.scene.dt)
     out = quality(world)
@@ -127,7 +141,7 @@ def drop(world: World, settle_steps: int) -> dict:
                 largest_move_r=float(moved.max()), asleep_before=asleep_before,
                 asleep_after=world.asleep_count, particles=len(world.state),
                 at_rest=bool(out['fastest'] < threshold), threshold=threshold,
-                steps=2 * settle_steps, ms=1e3 * wall / (2 * settle_steps))
+                **_times((wall + more[0], cpu + more[1]), 2 * settle_steps))
 
 
 def cluster(preset: str) -> dict:
@@ -144,9 +158,9 @@ def cluster(preset: str) -> dict:
         error = np.linalg.norm(w.momentum() - expected) / np.linalg.norm(expected)
         worst[0] = max(worst[0], float(error))
 
-    wall = timed_steps(world, CLUSTER_STEPS, track)
-    return {'momentum_error': worst[0], 'collisions': world.stats.collisions,
-            'steps': CLUSTER_STEPS, 'ms': 1e3 * wall / CLUSTER_STEPS}
+    seconds = timed_steps(world, CLUSTER_STEPS, track)
+    return dict(_times(seconds, CLUSTER_STEPS), momentum_error=worst[0],
+                collisions=world.stats.collisions)
 
 
 def run_case(case: str, preset: str) -> dict:
@@ -169,45 +183,79 @@ def run_case(case: str, preset: str) -> dict:
     return dict(row, case=case, preset=preset)
 
 
-# (case, column title, row key, format) of the outcome table.
-OUTCOMES = (('column', 'column top error / r', 'top_error_r', '{:.3g}'),
-            ('column_5cm', 'column (r = 5 cm) top error / r', 'top_error_r', '{:.3g}'),
-            ('pyramid', 'pyramid mu 0.5 displacement / r', 'displacement_r', '{:.3g}'),
-            ('pyramid_mu0', 'pyramid mu 0 displacement / r', 'displacement_r', '{:.3g}'),
-            ('pile', 'pile deepest overlap / r', 'overlap_pairs_r', '{:.3g}'),
-            ('pile', 'pile pairs over 1 % r', 'pairs_over_0.01r', '{}'),
-            ('drop_pile', 'drop on pile: moved', 'moved', '{}'),
-            ('drop_pile', 'drop on pile: at rest after', 'at_rest', '{}'),
-            ('drop_pile', 'drop on pile: overlap / r after', 'overlap_pairs_r', '{:.3g}'),
-            ('drop_column', 'drop on column: moved', 'moved', '{}'),
-            ('cluster', 'cluster momentum error', 'momentum_error', '{:.2g}'))
+# The columns every table starts with after case and preset: (heading, row key, format).
+TIMES = (('steps', 'steps', '{}'), ('ms per step', 'ms', '{:.3g}'),
+         ('CPU ms per step', 'cpu_ms', '{:.3g}'))
+# The pile quality of a settled world (``pile_quality``).
+QUALITY = (('deepest overlap / r (pairs)', 'overlap_pairs_r', '{:.3g}'),
+           ('deepest overlap / r (walls)', 'overlap_walls_r', '{:.3g}'),
+           ('pairs over 1 % r', 'pairs_over_0.01r', '{}'),
+           ('pairs over 10 % r', 'pairs_over_0.1r', '{}'),
+           ('contacts (gap < 1 % r)', 'contacts', '{}'),
+           ('top m', 'top', '{:.4g}'),
+           ('fastest m/s', 'fastest', '{:.3g}'))
+# One table per kind of case: (title, cases, outcome columns as (heading, row key, format)).
+TABLES = (
+    ('Columns of 20 spheres on a floor, 10 s: the top centre against its exact height',
+     ('column', 'column_5cm'),
+     (('top m', 'top_m', '{:.10g}'), ('exact top m', 'exact_m', '{:.10g}'),
+      ('top error / r', 'top_error_r', '{:.3g}'),
+      ('largest error / r', 'worst_error_r', '{:.3g}'))),
+    ('Pyramids of 55 discs spanning their box (mu = 0.5 / no friction), 10 s: '
+     'the largest displacement of a disc',
+     ('pyramid', 'pyramid_mu0'),
+     (('displacement / r at the end', 'displacement_r', '{:.3g}'),
+      ('largest displacement / r', 'worst_displacement_r', '{:.3g}'))),
+    ('The shipped pile settled for 480 steps',
+     ('pile',),
+     QUALITY),
+    (f'A ball dropped from {DROP_HEIGHT:g} m onto the settled pile and the column, then as '
+     f'long again: the particles it moved by more than {MOVED_RADII * 100:g} % of r, whether all '
+     'rest again (fastest below the restitution threshold)',
+     ('drop_pile', 'drop_column'),
+     (('particles', 'particles', '{}'), ('moved', 'moved', '{}'),
+      ('largest move / r', 'largest_move_r', '{:.3g}'),
+      ('asleep before', 'asleep_before', '{}'), ('asleep after', 'asleep_after', '{}'),
+      ('threshold m/s', 'threshold', '{:.4g}'),
+      ('at rest', 'at_rest', '{}')) + QUALITY),
+    (f'27 touching spheres falling freely for {CLUSTER_STEPS} steps: the largest relative '
+     'error of the momentum against p0 + M g t',
+     ('cluster',),
+     (('collisions', 'collisions', '{}'), ('momentum error', 'momentum_error', '{:.2g}'))),
+)
+
+
+def _text(value: object, form: str) -> str:
+    """Return a table cell: ``value`` in ``form``, a flag as yes or no."""
+    if isinstance(value, bool):
+        return 'yes' if value else 'no'
+    return form.format(value)
 
 
 def print_tables(rows: list, presets: list, cases: list) -> None:
-    """Print the outcome table and the ms-per-step table (one row per preset)."""
+    """Print one table per kind of case that ran: one row per case and preset."""
     found = {(row['case'], row['preset']): row for row in rows}
-
-    def cell(case: str, preset: str, key: str, form: str) -> str:
-        row = found.get((case, preset))
-        if row is None:
-            return ''
-        return 'refused' if 'skipped' in row else form.format(row[key])
-
-    columns = [item for item in OUTCOMES if item[0] in cases]
-    print('| preset | ' + ' | '.join(title for _, title, _, _ in columns) + ' |')
-    print('|---|' + '---:|' * len(columns))
-    for preset in presets:
-        cells = [cell(case, preset, key, form) for case, _, key, form in columns]
-        print(f'| {preset} | ' + ' | '.join(cells) + ' |')
-    print()
-    print('ms per step (wall):')
-    print()
-    print('| preset | ' + ' | '.join(cases) + ' |')
-    print('|---|' + '---:|' * len(cases))
-    for preset in presets:
-        cells = [cell(case, preset, 'ms', '{:.3g}') for case in cases]
-        print(f'| {preset} | ' + ' | '.join(cells) + ' |')
+    for title, kinds, outcomes in TABLES:
+        ran = [case for case in cases if case in kinds]
+        if not ran:
+            continue
+        columns = TIMES + outcomes
+        print()
+        print(f'{title}:')
+        print()
+        print('| case | preset | ' + ' | '.join(heading for heading, _, _ in columns) + ' |')
+        print('|---|---|' + '---:|' * len(columns))
+        for case in ran:
+            for preset in presets:
+                row = found[(case, preset)]
+                if 'skipped' in row:
+                    cells = ['refused'] + [''] * (len(columns) - 1)
+                else:
+                    cells = [_text(row[key], form) for _, key, form in columns]
+                print(f'| {case} | {preset} | ' + ' | '.join(cells) + ' |')
     refused = sorted({row['skipped'] for row in rows if 'skipped' in row})
+    if refused:
+        print()
     for reason in refused:
         print(f'refused: {reason}')
 
@@ -218,27 +266,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='presets to run (default: all four; exact where it accepts)')
     parser.add_argument('--cases', nargs='+', default=list(CASES), choices=CASES,
                         help='cases to run (default: all)')
-    parser.add_argument('--out', metavar='FILE.json',
-                        help='also write every row, the command and the machine as JSON')
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run every case under every preset, print the tables, write the JSON if asked."""
+    """Run every case under every preset and print the tables."""
     took = prepare_kernels()
     print(f'stacks: {_load_line()}; contact kernels ready in {took:.2f} s')
     rows = []
     for preset in args.presets:
         for case in args.cases:
             rows.append(run_case(case, preset))
-            print(f'  {case} under {preset}: done', flush=True)
-    print()
+            # Progress on stderr: the results file records stdout only.
+            print(f'  {case} under {preset}: done', file=sys.stderr, flush=True)
     print_tables(rows, args.presets, args.cases)
-    if args.out:
-        document = {'command': command_line(args),
-                    'date': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
-                    'machine': _load_line(), 'rows': rows}
-        with open(args.out, 'w', encoding='utf-8') as out:
-            json.dump(document, out, indent=1, sort_keys=True)
-            out.write('\n')
-        print(f'wrote {args.out}')
     return 0
