@@ -79,13 +79,26 @@ def test_pile_bench_rows_and_pymunk_missing_message(capsys, monkeypatch):
     # Discs poured from 0.5 m up are still falling after 3 steps: above the threshold.
     assert float(fast[6]) > 0.164 and fast[7] == 'no'
     assert exact[0] == 'exact' and 'cannot simulate friction' in exact[1]
+    assert exact[2:] == [''] * 10
     assert pour[0] == 'balanced' and pour[1] == '2' and float(pour[4]) > 0
     # Still falling after 2 steps: no overlap (contacts only where the lattice meets a
-    # wall); the top is the pour's.
-    assert pour[8:10] == ['0', '0'] and int(pour[10]) >= 0 and float(pour[11]) > 0.5
+    # wall); the top is the pour's; no solver of a peer, no solver contacts.
+    assert pour[9:11] == ['0', '0'] and int(pour[11]) >= 0 and float(pour[12]) > 0.5
+    assert pour[13:] == ['-', '-']
 
 
-def test_pile_bench_writes_json(tmp_path, monkeypatch, capsys):
+PILE_2D_COLUMNS = ['run', 'steps', 'ms per step', 'CPU ms per step',
+                   'deepest overlap / r (discs)', 'deepest overlap / r (walls)',
+                   'fastest disc m/s', 'below threshold 0.164 m/s', 'pairs over 1 % r',
+                   'pairs over 10 % r', 'contacts (gap < 1 % r)', 'top m']
+PILE_3D_COLUMNS = ['run', 'steps', 'ms per step', 'CPU ms per step', 'real-time factor',
+                   'real-time factor (CPU)', 'deepest overlap / r (spheres)',
+                   'deepest overlap / r (walls)', 'fastest sphere m/s', 'pairs over 1 % r',
+                   'pairs over 10 % r', 'contacts (gap < 1 % r)', 'top m',
+                   'solver contacts (most in a step)', 'solver contacts (at the end)']
+
+
+def test_pile_bench_records_its_tables(tmp_path, monkeypatch, capsys):
     import json
     import sys
     monkeypatch.setitem(sys.modules, 'pymunk', None)
@@ -93,14 +106,30 @@ def test_pile_bench_writes_json(tmp_path, monkeypatch, capsys):
     out = tmp_path / 'pile.json'
     assert bench.main(['pile', '--steps', '2', '--presets', 'fast', '--count3d', '30',
                        '--steps3d', '1', '--out', str(out)]) == 0
-    document = json.loads(out.read_text())
-    assert document['command'].startswith('python -m collision_node.bench pile ')
-    assert '--count3d 30' in document['command']
-    (fast,) = document['pile2d']['rows']
-    assert fast['label'] == 'fast' and fast['steps'] == 2 and fast['ms'] > 0
-    (pour,) = document['pile3d']['rows']
-    assert pour['label'] == 'balanced' and pour['steps'] == 1
-    assert pour['pairs_over_0.01r'] == 0 and pour['real_time'] > 0
+    data = json.loads(out.read_text())
+    assert data['benchmark'] == 'pile' and '--count3d 30' in data['command']
+    assert data['options']['count3d'] == 30 and data['options']['no_mujoco'] is False
+    pile2d, pour = _recorded_tables(out)
+    assert pile2d['columns'] == PILE_2D_COLUMNS and pour['columns'] == PILE_3D_COLUMNS
+    (fast,) = pile2d['rows']
+    assert fast[:2] == ['fast', '2'] and float(fast[2]) > 0
+    (balanced,) = pour['rows']
+    assert balanced[:2] == ['balanced', '1'] and balanced[9] == '0' and float(balanced[4]) > 0
+
+
+def test_pile_bench_mujoco_row_is_a_peer_row(tmp_path, capsys):
+    """With MuJoCo installed, its row starts with its name and gets the peer ratio."""
+    pytest.importorskip('mujoco')
+    from collision_node.bench.results import files, page
+    out = tmp_path / 'pile.json'
+    assert bench.main(['pile', '--steps', '1', '--presets', 'fast', '--no-pymunk',
+                       '--count3d', '30', '--steps3d', '2', '--out', str(out)]) == 0
+    pour = _recorded_tables(out)[1]
+    balanced, peer = pour['rows']
+    assert peer[0].startswith('MuJoCo ') and peer[1] == '2' and int(peer[13]) >= 0
+    assert balanced[13:] == ['-', '-']
+    rendered = page.peer_columns(page.tables(files.read(out))[1])
+    assert rendered['columns'][-1] == f'CPU time / {peer[0]}'
 
 
 def test_pile_quality_counts_overlaps_and_contacts():

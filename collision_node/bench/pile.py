@@ -4,12 +4,13 @@
 (240 discs of r = 5 cm poured into a 1.6 m wide box, e = 0.3, mu = 0.5,
 dt = 1/120 s) for 480 steps (4 s) under each preset and prints a Markdown
 table: wall and CPU ms per step, the settled pile's deepest overlap as a
-fraction of the radius (between discs and against the walls), and the
-fastest disc at the end against the restitution threshold (2 |g| dt, the
-closing speed below which contacts are perfectly inelastic: a pile at rest
-has every disc below it). A run stops after ``--max-seconds`` and says how
-many steps it did; ``exact`` (event mode) refuses friction, and its row
-says so.
+fraction of the radius (between discs and against the walls), the fastest
+disc at the end against the restitution threshold (2 |g| dt, the closing
+speed below which contacts are perfectly inelastic: a pile at rest has
+every disc below it), the pairs overlapping by more than 1 % and 10 % of r,
+the contacts (pairs and wall contacts closer than 1 % of r) and the pile's
+top. A run stops after ``--max-seconds`` and says how many steps it did;
+``exact`` (event mode) refuses friction, and its row says so.
 
 If pymunk is installed (it is not a dependency: ``pip install pymunk==7.x``
 for this benchmark only), the same discs, walls (static segments), e, mu
@@ -23,22 +24,23 @@ The second table (skip it with ``--no-3d``) pours ``--count3d`` spheres
 square box (``scenarios.pour3d``) at dt = 1/60 s under ``balanced`` for
 ``--steps3d`` steps (default 240: 4 s, the pour and its settling) and
 reports ms per step, the real-time factor (simulated over wall seconds,
-one process, one core), the deepest overlap at the end over r, the pairs
-overlapping by more than 1 % and 10 % of r, the contacts (pairs and wall
-contacts closer than 1 % of r) and the pile's top. If MuJoCo is installed
-(``pip install -r bench-requirements.txt``; never a dependency of the
-package or the tests), the same spheres, box, mu and dt run in MuJoCo
-(PGS solver, its default soft contact, which has no restitution) as a
-comparison row, stopped after ``--max-seconds`` like every run; without
-it the row is skipped with a printed note. ``--out FILE.json`` writes
-every row, the command and the machine as JSON. ``--profile`` adds every
-run's wall time per stage (``World.profile``).
+one process, one core), the deepest overlap at the end over r (between
+spheres and against the walls) and the 2-D table's counts and top. If
+MuJoCo is installed (``pip install -r bench-requirements.txt``; never a
+dependency of the package or the tests), the same spheres, box, mu and dt
+run in MuJoCo (PGS solver, its default soft contact, which has no
+restitution) as a comparison row, stopped after ``--max-seconds`` like
+every run, with the contacts its solver held (the most in a step, and at
+the end); without it the row is skipped with a printed note. Peers' rows
+start with the peer's name (``bench report`` adds their time ratio).
+``--out FILE`` / ``--results-dir [DIR]`` (the dispatcher's) record the
+tables as JSON. ``--profile`` adds every run's wall time per stage
+(``World.profile``), after each table.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import platform
@@ -276,8 +278,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--presets3d', nargs='+', default=['balanced'], choices=PRESETS[:3],
                         help='presets of the 3-D pile (default: balanced)')
     parser.add_argument('--no-mujoco', action='store_true', help='skip the MuJoCo row')
-    parser.add_argument('--out', metavar='FILE.json',
-                        help='also write every row, the command and the machine as JSON')
     parser.add_argument('--profile', action='store_true',
                         help='after each table, the wall time per stage of every run '
                              '(the first step apart)')
@@ -289,6 +289,16 @@ def _load_line() -> str:
     machine = platform.processor() or platform.machine()
     return (f'{machine}, {os.cpu_count()} cores, load average '
             f'{load[0]:.2f} {load[1]:.2f} {load[2]:.2f}')
+
+
+# The counts and the top of a pile (``pile_quality``), the last columns of both tables.
+COUNT_COLUMNS = ('pairs over 1 % r', 'pairs over 10 % r', 'contacts (gap < 1 % r)', 'top m')
+
+
+def count_cells(row: dict) -> list[str]:
+    """Return the cells of COUNT_COLUMNS for a row of ``pile_quality``."""
+    return [f'{row["pairs_over_0.01r"]}', f'{row["pairs_over_0.1r"]}', f'{row["contacts"]}',
+            f'{row["top"]:.3f}']
 
 
 def run(args: argparse.Namespace) -> int:
@@ -310,26 +320,24 @@ def run(args: argparse.Namespace) -> int:
         else:
             rows.append(reference)
     print()
-    print(f'| run | steps | ms per step | CPU ms per step | deepest overlap / r (discs) '
-          f'| deepest overlap / r (walls) | fastest disc m/s | below threshold '
-          f'{threshold:.3g} m/s | pairs over 1 % r |')
-    print('|---|---:|---:|---:|---:|---:|---:|---|---:|')
+    columns = ['run', 'steps', 'ms per step', 'CPU ms per step', 'deepest overlap / r (discs)',
+               'deepest overlap / r (walls)', 'fastest disc m/s',
+               f'below threshold {threshold:.3g} m/s', *COUNT_COLUMNS]
+    print('| ' + ' | '.join(columns) + ' |')
+    print('|---|---:|---:|---:|---:|---:|---:|---|' + '---:|' * len(COUNT_COLUMNS))
     for row in rows:
         if 'skipped' in row:
-            print(f'| {row["label"]} | not run: {row["skipped"]} | | | | | | | |')
-            continue
-        print(f'| {row["label"]} | {row["steps"]} | {row["ms"]:.3g} | {row["cpu_ms"]:.3g} '
-              f'| {row["overlap_pairs_r"]:.3g} | {row["overlap_walls_r"]:.3g} '
-              f'| {row["fastest"]:.3g} | {"yes" if row["fastest"] < threshold else "no"} '
-              f'| {row["pairs_over_0.01r"]} |')
+            cells = [f'not run: {row["skipped"]}'] + [''] * (len(columns) - 2)
+        else:
+            cells = [f'{row["steps"]}', f'{row["ms"]:.3g}', f'{row["cpu_ms"]:.3g}',
+                     f'{row["overlap_pairs_r"]:.3g}', f'{row["overlap_walls_r"]:.3g}',
+                     f'{row["fastest"]:.3g}', 'yes' if row['fastest'] < threshold else 'no',
+                     *count_cells(row)]
+        print(f'| {row["label"]} | ' + ' | '.join(cells) + ' |')
     if args.profile:
         print_profiles('2-D pile', rows)
-    rows3d = [] if args.no_3d else run_3d(args)
-    if args.out:
-        pile3d = None if args.no_3d else {'count': args.count3d, 'steps': args.steps3d,
-                                          'dt': 1.0 / 60.0, 'rows': rows3d}
-        write_json(args.out, args, {'pile2d': {'scene': 'pile', 'steps': args.steps,
-                                               'rows': rows}, 'pile3d': pile3d})
+    if not args.no_3d:
+        run_3d(args)
     return 0
 
 
@@ -349,52 +357,23 @@ def run_3d(args: argparse.Namespace) -> list:
         else:
             rows3d.append(reference)
     print()
-    print('| run | steps | ms per step | CPU ms per step | real-time factor '
-          '| real-time factor (CPU) | deepest overlap / r | fastest sphere m/s '
-          '| pairs over 1 % r | pairs over 10 % r | contacts (gap < 1 % r) | top m |')
-    print('|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|')
+    columns = ['run', 'steps', 'ms per step', 'CPU ms per step', 'real-time factor',
+               'real-time factor (CPU)', 'deepest overlap / r (spheres)',
+               'deepest overlap / r (walls)', 'fastest sphere m/s', *COUNT_COLUMNS,
+               'solver contacts (most in a step)', 'solver contacts (at the end)']
+    print('| ' + ' | '.join(columns) + ' |')
+    print('|---|' + '---:|' * (len(columns) - 1))
     for row in rows3d:
-        print(f'| {row["label"]} | {row["steps"]} | {row["ms"]:.4g} | {row["cpu_ms"]:.4g} '
-              f'| {row["real_time"]:.3g} | {row["cpu_real_time"]:.3g} '
-              f'| {max(row["overlap_pairs_r"], row["overlap_walls_r"]):.3g} '
-              f'| {row["fastest"]:.3g} | {row["pairs_over_0.01r"]} | {row["pairs_over_0.1r"]} '
-              f'| {row["contacts"]} | {row["top"]:.3f} |')
+        cells = [f'{row["steps"]}', f'{row["ms"]:.4g}', f'{row["cpu_ms"]:.4g}',
+                 f'{row["real_time"]:.3g}', f'{row["cpu_real_time"]:.3g}',
+                 f'{row["overlap_pairs_r"]:.3g}', f'{row["overlap_walls_r"]:.3g}',
+                 f'{row["fastest"]:.3g}', *count_cells(row),
+                 f'{row.get("solver_contacts_max", "-")}',
+                 f'{row.get("solver_contacts_end", "-")}']
+        print(f'| {row["label"]} | ' + ' | '.join(cells) + ' |')
     if args.profile:
         print_profiles('3-D pile', rows3d)
     return rows3d
-
-
-def command_line(args: argparse.Namespace) -> str:
-    """Return the command that reproduces ``args`` (every option spelled out)."""
-    words = ['python -m collision_node.bench', args.command]
-    for key, value in sorted(vars(args).items()):
-        if key == 'command' or value is None or value is False:
-            continue
-        option = '--' + key.replace('_', '-')
-        if value is True:
-            words.append(option)
-        elif isinstance(value, (list, tuple)):
-            words += [option, *map(str, value)]
-        else:
-            words += [option, str(value)]
-    return ' '.join(words)
-
-
-def write_json(path: str, args: argparse.Namespace, results: dict) -> None:
-    """Write ``results`` with the command line, the date and the machine to ``path``."""
-    def plain(row: dict) -> dict:
-        return {key: value for key, value in row.items() if key != 'profile'}
-
-    for part in results.values():
-        if part is not None:
-            part['rows'] = [plain(row) for row in part['rows']]
-    document = {'command': command_line(args),
-                'date': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
-                'machine': _load_line(), **results}
-    with open(path, 'w', encoding='utf-8') as out:
-        json.dump(document, out, indent=1, sort_keys=True)
-        out.write('\n')
-    print(f'wrote {path}')
 
 
 def print_profiles(title: str, rows: list) -> None:
