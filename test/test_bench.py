@@ -134,7 +134,7 @@ def test_pile_bench_mujoco_row_is_a_peer_row(tmp_path, capsys):
 
 def test_pile_quality_counts_overlaps_and_contacts():
     import numpy as np
-    from collision_node.bench.pile import pile_quality
+    from collision_node.bench.contact.pile import pile_quality
     r = 0.05
     # Pairs 0-1 overlap by 2 % of r, 2-3 by 20 %, 4-5 touch within 0.5 % r; 6 rests on the floor.
     x = [0.0, 2 * r - 0.02 * r, 1.0, 1.0 + 2 * r - 0.2 * r, 2.0, 2.0 + 2 * r + 0.005 * r, 3.0]
@@ -179,7 +179,7 @@ def test_stacks_bench_records_its_tables(tmp_path, capsys):
 
 
 def test_pile_quality_measures_overlap_and_speed():
-    from collision_node.bench.pile import pile_quality
+    from collision_node.bench.contact.pile import pile_quality
     import numpy as np
     position = np.array([[0.1, 0.05], [0.18, 0.05], [1.0, 0.04]])
     velocity = np.array([[0.0, 0.0], [0.3, 0.4], [0.0, 0.0]])
@@ -261,7 +261,7 @@ def test_resting_bench_rows_say_what_each_preset_kept(capsys):
 
 def test_resting_bench_drop_scene_puts_a_disc_above_a_hollow_of_the_top_row():
     """The dropped disc is 0.3 m above touching the top row, over a hollow (x = 26 r)."""
-    from collision_node.bench.resting import RADIUS, scene
+    from collision_node.bench.contact.resting import RADIUS, scene
     particles = scene('drop', 'exact')['particles']
     assert len(particles) == 501
     top = max(p['position'][1] for p in particles[:-1])

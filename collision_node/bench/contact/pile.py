@@ -49,13 +49,13 @@ from typing import Optional
 
 import numpy as np
 
-from ..physics.step.kernels import prepare as prepare_kernels
-from ..physics.step.reference import end_penetration
-from ..physics.model.scene import load_scene
-from ..physics.model.validation import SceneError
-from ..physics.step.world import World
-from ..physics.stages.detection.broadphase import candidate_pairs
-from ..scenarios import pour3d
+from ...physics.step.kernels import prepare as prepare_kernels
+from ...physics.step.reference import end_penetration
+from ...physics.model.scene import load_scene
+from ...physics.model.validation import SceneError
+from ...physics.step.world import World
+from ...physics.stages.detection.broadphase import candidate_pairs
+from ...scenarios import pour3d
 
 PRESETS = ('fast', 'balanced', 'accurate', 'exact')
 PYMUNK_MISSING = 'pymunk not installed (pip install pymunk==7.x): comparison row skipped'
@@ -91,7 +91,7 @@ def pile_quality(position: np.ndarray, velocity: np.ndarray, radius: np.ndarray,
     closer than CONTACT_GAP_RADII of it; ``top`` the highest point (max of
     y + r), m.
     """
-    from ..physics.model.state import ParticleState
+    from ...physics.model.state import ParticleState
     n = position.shape[0]
     padded = np.zeros((n, 3))
     padded[:, :dimensions] = position[:, :dimensions]
@@ -138,7 +138,7 @@ def run_preset(scene, preset: str, steps: int, max_seconds: float) -> dict:
 
 def _settings(preset: str):
     """Return the accuracy settings of a preset by name."""
-    from ..physics.model.accuracy import parse_accuracy
+    from ...physics.model.accuracy import parse_accuracy
     return parse_accuracy(preset, 'bench pile: accuracy')
 
 

@@ -36,11 +36,11 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from ..physics.model.validation import SceneError
-from ..physics.step.kernels import prepare as prepare_kernels
-from ..physics.step.world import World
-from ..scenarios import (PILE_SETTLE_STEPS, STACK_DT, STACK_RADIUS, column_top, disc_pyramid,
-                         drop_ball, falling_cluster, shipped_pile, sphere_column)
+from ...physics.model.validation import SceneError
+from ...physics.step.kernels import prepare as prepare_kernels
+from ...physics.step.world import World
+from ...scenarios import (PILE_SETTLE_STEPS, STACK_DT, STACK_RADIUS, column_top, disc_pyramid,
+                          drop_ball, falling_cluster, shipped_pile, sphere_column)
 from .pile import _load_line, pile_quality
 
 PRESETS = ('fast', 'balanced', 'accurate', 'exact')
