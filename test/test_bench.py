@@ -67,21 +67,119 @@ def test_pile_bench_rows_and_pymunk_missing_message(capsys, monkeypatch):
     import sys
     # A None entry makes ``import pymunk`` raise ImportError, installed or not.
     monkeypatch.setitem(sys.modules, 'pymunk', None)
+    monkeypatch.setitem(sys.modules, 'mujoco', None)
     assert bench.main(['pile', '--steps', '3', '--presets', 'fast', 'exact',
                        '--count3d', '60', '--steps3d', '2']) == 0
     out = capsys.readouterr().out
     assert 'pymunk not installed (pip install pymunk==7.x): comparison row skipped' in out
+    assert 'mujoco not installed (pip install -r bench-requirements.txt)' in out
     rows = _table(out)
     fast, exact, pour = rows
     assert fast[0] == 'fast' and fast[1] == '3' and float(fast[2]) > 0
     # Discs poured from 0.5 m up are still falling after 3 steps: above the threshold.
     assert float(fast[6]) > 0.164 and fast[7] == 'no'
     assert exact[0] == 'exact' and 'cannot simulate friction' in exact[1]
+    assert exact[2:] == [''] * 10
     assert pour[0] == 'balanced' and pour[1] == '2' and float(pour[4]) > 0
+    # Still falling after 2 steps: no overlap (contacts only where the lattice meets a
+    # wall); the top is the pour's; no solver of a peer, no solver contacts.
+    assert pour[9:11] == ['0', '0'] and int(pour[11]) >= 0 and float(pour[12]) > 0.5
+    assert pour[13:] == ['-', '-']
+
+
+PILE_2D_COLUMNS = ['run', 'steps', 'ms per step', 'CPU ms per step',
+                   'deepest overlap / r (discs)', 'deepest overlap / r (walls)',
+                   'fastest disc m/s', 'below threshold 0.164 m/s', 'pairs over 1 % r',
+                   'pairs over 10 % r', 'contacts (gap < 1 % r)', 'top m']
+PILE_3D_COLUMNS = ['run', 'steps', 'ms per step', 'CPU ms per step', 'real-time factor',
+                   'real-time factor (CPU)', 'deepest overlap / r (spheres)',
+                   'deepest overlap / r (walls)', 'fastest sphere m/s', 'pairs over 1 % r',
+                   'pairs over 10 % r', 'contacts (gap < 1 % r)', 'top m',
+                   'solver contacts (most in a step)', 'solver contacts (at the end)']
+
+
+def test_pile_bench_records_its_tables(tmp_path, monkeypatch, capsys):
+    import json
+    import sys
+    monkeypatch.setitem(sys.modules, 'pymunk', None)
+    monkeypatch.setitem(sys.modules, 'mujoco', None)
+    out = tmp_path / 'pile.json'
+    assert bench.main(['pile', '--steps', '2', '--presets', 'fast', '--count3d', '30',
+                       '--steps3d', '1', '--out', str(out)]) == 0
+    data = json.loads(out.read_text())
+    assert data['benchmark'] == 'pile' and '--count3d 30' in data['command']
+    assert data['options']['count3d'] == 30 and data['options']['no_mujoco'] is False
+    pile2d, pour = _recorded_tables(out)
+    assert pile2d['columns'] == PILE_2D_COLUMNS and pour['columns'] == PILE_3D_COLUMNS
+    (fast,) = pile2d['rows']
+    assert fast[:2] == ['fast', '2'] and float(fast[2]) > 0
+    (balanced,) = pour['rows']
+    assert balanced[:2] == ['balanced', '1'] and balanced[9] == '0' and float(balanced[4]) > 0
+
+
+def test_pile_bench_mujoco_row_is_a_peer_row(tmp_path, capsys):
+    """With MuJoCo installed, its row starts with its name and gets the peer ratio."""
+    pytest.importorskip('mujoco')
+    from collision_node.bench.results import files, page
+    out = tmp_path / 'pile.json'
+    assert bench.main(['pile', '--steps', '1', '--presets', 'fast', '--no-pymunk',
+                       '--count3d', '30', '--steps3d', '2', '--out', str(out)]) == 0
+    pour = _recorded_tables(out)[1]
+    balanced, peer = pour['rows']
+    assert peer[0].startswith('MuJoCo ') and peer[1] == '2' and int(peer[13]) >= 0
+    assert balanced[13:] == ['-', '-']
+    rendered = page.peer_columns(page.tables(files.read(out))[1])
+    assert rendered['columns'][-1] == f'CPU time / {peer[0]}'
+
+
+def test_pile_quality_counts_overlaps_and_contacts():
+    import numpy as np
+    from collision_node.bench.contact.pile import pile_quality
+    r = 0.05
+    # Pairs 0-1 overlap by 2 % of r, 2-3 by 20 %, 4-5 touch within 0.5 % r; 6 rests on the floor.
+    x = [0.0, 2 * r - 0.02 * r, 1.0, 1.0 + 2 * r - 0.2 * r, 2.0, 2.0 + 2 * r + 0.005 * r, 3.0]
+    position = np.array([[v, 1.0] for v in x[:6]] + [[x[6], r]])
+    quality = pile_quality(position, np.zeros((7, 2)), np.full(7, r),
+                           np.array([-10.0, 0.0, -np.inf]), np.array([10.0, 10.0, np.inf]), 2)
+    assert quality['pairs_over_0.01r'] == 2 and quality['pairs_over_0.1r'] == 1
+    assert quality['contacts'] == 4 and quality['top'] == pytest.approx(1.0 + r)
+    assert quality['overlap_pairs_r'] == pytest.approx(0.2)
+
+
+def _recorded_tables(path) -> list[dict]:
+    """Return the tables a results file recorded, in the order printed."""
+    import json
+    data = json.loads(path.read_text())
+    assert data['format'] == 1 and data['exit_code'] == 0
+    return [block for block in data['output'] if block['kind'] == 'table']
+
+
+def test_stacks_bench_records_its_tables(tmp_path, capsys):
+    out = tmp_path / 'stacks.json'
+    assert bench.main(['stacks', '--presets', 'fast', 'exact', '--cases', 'cluster', 'column',
+                       '--out', str(out)]) == 0
+    captured = capsys.readouterr()
+    assert 'refused: ' in captured.out and 'cannot simulate friction' in captured.out
+    assert 'cluster under fast: done' in captured.err      # progress: not in the results
+    columns, table = _recorded_tables(out)
+    # The column: exact keeps its top at the exact height, both rows give it.
+    assert columns['columns'][:5] == ['case', 'preset', 'steps', 'ms per step',
+                                      'CPU ms per step']
+    assert columns['columns'][5:] == ['top m', 'exact top m', 'top error / r',
+                                      'largest error / r']
+    assert [row[:3] for row in columns['rows']] == [['column', 'fast', '600'],
+                                                    ['column', 'exact', '600']]
+    assert abs(float(columns['rows'][1][7])) < 1e-6
+    assert table['columns'] == ['case', 'preset', 'steps', 'ms per step', 'CPU ms per step',
+                                'collisions', 'momentum error']
+    fast, exact = table['rows']
+    assert fast[:3] == ['cluster', 'fast', '120'] and float(fast[3]) > 0
+    assert int(fast[5]) > 0 and 0.0 <= float(fast[6]) < 1.0
+    assert exact[:3] == ['cluster', 'exact', 'refused'] and exact[3:] == [''] * 4
 
 
 def test_pile_quality_measures_overlap_and_speed():
-    from collision_node.bench.pile import pile_quality
+    from collision_node.bench.contact.pile import pile_quality
     import numpy as np
     position = np.array([[0.1, 0.05], [0.18, 0.05], [1.0, 0.04]])
     velocity = np.array([[0.0, 0.0], [0.3, 0.4], [0.0, 0.0]])
@@ -163,7 +261,7 @@ def test_resting_bench_rows_say_what_each_preset_kept(capsys):
 
 def test_resting_bench_drop_scene_puts_a_disc_above_a_hollow_of_the_top_row():
     """The dropped disc is 0.3 m above touching the top row, over a hollow (x = 26 r)."""
-    from collision_node.bench.resting import RADIUS, scene
+    from collision_node.bench.contact.resting import RADIUS, scene
     particles = scene('drop', 'exact')['particles']
     assert len(particles) == 501
     top = max(p['position'][1] for p in particles[:-1])

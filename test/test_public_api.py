@@ -16,7 +16,7 @@ from collision_node import (IMPACT_DTYPE, PRESETS, AccuracySettings, Effects, Ga
                             SceneError, StepStats, World, build_scene, load_scene, parse_scene,
                             parse_scene_text, scenarios, scene_mapping, walls_box)
 from collision_node import physics
-from collision_node.bench import resting
+from collision_node.bench.contact import resting
 from collision_node.physics.model import accuracy, impacts
 from collision_node.physics.step import pipeline
 

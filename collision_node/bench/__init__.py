@@ -3,7 +3,9 @@
 Each subcommand lives in a module of its own that exposes
 ``add_arguments(parser)`` and ``run(args) -> int``. Registering one is a
 one-line change: add ``'NAME': 'collision_node.bench.NAME'`` to
-``SUBCOMMANDS``. Modules are imported only when their subcommand runs, so
+``SUBCOMMANDS`` (the contact benchmarks, ``pile``, ``stacks`` and
+``resting``, live in the subpackage ``bench.contact``). Modules are
+imported only when their subcommand runs, so
 one that needs ROS (``bench.node``) costs the others nothing. Every
 subcommand but those in ``OWN_RESULTS`` also takes ``--out FILE`` and
 ``--results-dir [DIR]`` and then writes its results as JSON
@@ -26,12 +28,13 @@ SUBCOMMANDS: dict[str, str] = {
     'accuracy': 'collision_node.bench.accuracy_ladder',
     'node-load': 'collision_node.bench.node_load',
     'commands': 'collision_node.bench.spawn_burst',
-    'pile': 'collision_node.bench.pile',
+    'pile': 'collision_node.bench.contact.pile',
     'mixed': 'collision_node.bench.mixed',
     'exact': 'collision_node.bench.exact',
     'node-start': 'collision_node.bench.node_start',
-    'resting': 'collision_node.bench.resting',
+    'resting': 'collision_node.bench.contact.resting',
     'report': 'collision_node.bench.results.page',
+    'stacks': 'collision_node.bench.contact.stacks',
 }
 # Subcommands that write files of their own instead of a results file (as does any
 # subcommand that declares an --out of its own).

@@ -230,7 +230,7 @@ def gravity_measures(name: str, world: World, heights: list) -> dict:
     if name == 'bouncing_ball':
         out['apex_error'] = apex_error(heights)
     elif name == 'pile':
-        from .pile import pile_quality
+        from .contact.pile import pile_quality
         s, walls = world.state, world.scene.effects.walls
         quality = pile_quality(s.position, s.velocity, s.radius, walls.low, walls.high,
                                world.scene.dimensions)

@@ -27,11 +27,11 @@ import time
 
 import numpy as np
 
-from ..physics.step import kernels
-from ..physics.model.scene import parse_scene
-from ..physics.stages.detection.broadphase import candidate_pairs
-from ..physics.step.world import World
-from ..scenarios import ball, resting_column, resting_pile
+from ...physics.step import kernels
+from ...physics.model.scene import parse_scene
+from ...physics.stages.detection.broadphase import candidate_pairs
+from ...physics.step.world import World
+from ...scenarios import ball, resting_column, resting_pile
 
 RADIUS = 0.05
 WARM_STEPS = 2
