@@ -14,7 +14,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from collision_node.physics.model.effects import Walls
-from collision_node.physics.model.tunables import SUPPORT_SLOP
+from collision_node.physics.model.tunables import STACK_ALIGNMENT, SUPPORT_SLOP
 from collision_node.physics.stages.correction.separation import SeparationStage
 from collision_node.physics.stages.detection.narrowphase import line_of_action
 from collision_node.physics.step.pipeline import StepContext
@@ -169,6 +169,8 @@ class SeparationOracle(SeparationStage):
         level = support_levels(s.position, s.radius, s.dynamic, i, j, self.walls,
                                np.asarray(ctx.effects.gravity, dtype=float), ctx.dimensions)
         order = np.argsort(np.minimum(level[i], level[j]), kind='stable')
+        g = np.asarray(ctx.effects.gravity, dtype=float)
+        up = -g / np.linalg.norm(g)
         for _ in range(passes):
             overlapped = False
             for k in order[:count]:
@@ -180,9 +182,19 @@ class SeparationOracle(SeparationStage):
                     continue
                 overlapped = True
                 w_a, w_b = s.inv_mass[a].copy(), s.inv_mass[b].copy()
-                if level[a[0]] < level[b[0]] and w_b[0] > 0.0:
+                upright = abs(float(normal[0] @ up)) >= STACK_ALIGNMENT
+                walls = self.walls
+
+                def into_wall(rows, way):
+                    return walls is not None and bool(held_by_walls(
+                        s.position[rows] + depth[:, None] * way, s.radius[rows], way, walls,
+                        ctx.dimensions)[0])
+
+                if not upright:
+                    pass
+                elif level[a[0]] < level[b[0]] and w_b[0] > 0.0 and not into_wall(b, -normal):
                     w_a[:] = 0.0
-                elif level[b[0]] < level[a[0]] and w_a[0] > 0.0:
+                elif level[b[0]] < level[a[0]] and w_a[0] > 0.0 and not into_wall(a, normal):
                     w_b[:] = 0.0
                 w_sum = w_a + w_b
                 if not w_sum[0] > 0.0:

@@ -81,6 +81,13 @@ GRAVITY_PASSES = 4
 # (they hold, their partners move); 0 counts only particles on the plane.
 SUPPORT_SLOP = 0.01
 
+# Cosine: separation holds the particle nearer a support only where the pair
+# stands one above the other, its line of action within this of vertical
+# (0.95: 18 degrees), as in a column; slanted and side contacts (a hexagonal
+# pile's 60-degree grooves) share the push by inverse mass. Lower values hold
+# in grooves too, where a settled pile then lifts and falls back every step.
+STACK_ALIGNMENT = 0.95
+
 # --- Broadphase (stages/detection) ---------------------------------------------------------------
 
 # Reaches within one size class differ by less than this factor: the

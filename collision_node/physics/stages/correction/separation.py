@@ -143,9 +143,12 @@ class SeparationStage(Stage):
             contacts = ContactArrays(_NO_PAIRS, _NO_PAIRS, np.zeros((0, 3)), np.zeros(0))
         particles = particle_arrays(s)
         bounds = self._wall_bounds(ctx.dimensions)
+        gravity = ctx.effects.gravity
+        g = np.zeros(3) if gravity is None else np.asarray(gravity, dtype=float)
+        norm = float(np.linalg.norm(g))
+        up = (0.0, 0.0, 1.0) if norm == 0.0 else tuple(float(x) for x in -g / norm)
         project_overlaps(particles, np.ascontiguousarray(s.dynamic, dtype=np.bool_), contacts,
-                         bounds, self._floors(bounds, ctx.effects.gravity), passes, hold,
-                         passes > 1)
+                         bounds, self._floors(bounds, gravity), up, passes, hold, passes > 1)
         if particles.position is not s.position:
             s.position[...] = particles.position
 

@@ -21,7 +21,7 @@ from ...law.primitives import dot3, line_of_action  # noqa: E402
 from ...step.step_kernels import (ParticleArrays, spread_levels, union_root,  # noqa: E402
                                   UNSUPPORTED)
 from ..detection.narrowphase_kernels import ContactArrays  # noqa: E402
-from ...model.tunables import SUPPORT_SLOP  # noqa: E402
+from ...model.tunables import STACK_ALIGNMENT, SUPPORT_SLOP  # noqa: E402
 
 
 class WallBounds(NamedTuple):
@@ -154,13 +154,15 @@ def support_order(contacts, level):
 
 
 @njit(cache=True)
-def _separate_in_turn(particles, contacts, order, level):
+def _separate_in_turn(particles, contacts, order, level, walls, up):
     """One Gauss-Seidel projection pass: each pair in ``order``, from the positions as they are.
 
     Each overlapping pair is pushed apart along its current line of action
-    by its overlap. Of two dynamic particles at different support levels the
+    by its overlap. Of two dynamic particles at different support levels, one
+    above the other (the line of action within STACK_ALIGNMENT of ``up``), the
     one nearer a support holds and the other takes the whole push (a lift
-    from the support, paid for by ``pay_for_lift``); at one level, and in a
+    from the support, paid for by ``pay_for_lift``), unless that push would
+    take it into a wall (then they share it); at one level, and in a
     cluster no wall or static particle supports, the push is shared by
     inverse mass, m_a dx_a = -m_b dx_b: the centre of mass stays, so no pass
     lifts an unsupported cluster. Returns whether any pair overlapped.
@@ -180,9 +182,15 @@ def _separate_in_turn(particles, contacts, order, level):
             continue
         any_overlap = True
         w_a, w_b = inv_mass[a], inv_mass[b]
-        if level[a] < level[b] and w_b > 0.0:
+        # The one farther from a support moves alone, unless that takes it into a wall
+        # (the clamp would put it back and leave the overlap): then they share.
+        if abs(dot3(nx, ny, nz, up[0], up[1], up[2])) < STACK_ALIGNMENT:
+            pass
+        elif level[a] < level[b] and w_b > 0.0 and not (walls.present and _held(
+                particles, b, (-depth * nx, -depth * ny, -depth * nz), (-nx, -ny, -nz), walls)):
             w_a = 0.0
-        elif level[b] < level[a] and w_a > 0.0:
+        elif level[b] < level[a] and w_a > 0.0 and not (walls.present and _held(
+                particles, a, (depth * nx, depth * ny, depth * nz), (nx, ny, nz), walls)):
             w_b = 0.0
         w_sum = w_a + w_b
         if not w_sum > 0.0:
@@ -209,7 +217,7 @@ def _clamp_inside(particles, dynamic, walls):
 
 
 @njit(cache=True, nogil=True)
-def project_overlaps(particles, dynamic, contacts, walls, floors, passes, hold, in_turn):
+def project_overlaps(particles, dynamic, contacts, walls, floors, up, passes, hold, in_turn):
     """Run the separation stage's projection on ``particles.position`` in place.
 
     ``passes`` Jacobi passes: the first on the narrowphase's normals and
@@ -218,7 +226,8 @@ def project_overlaps(particles, dynamic, contacts, walls, floors, passes, hold, 
     again; with walls present the particles are clamped back inside after
     each pass. ``hold``: a particle its push would take into a wall stays
     put. ``floors``: per wall plane, whether it holds particles up against
-    gravity. ``in_turn`` (under gravity): Gauss-Seidel passes instead
+    gravity, and ``up`` the unit vector against it (any unit vector without
+    gravity). ``in_turn`` (under gravity): Gauss-Seidel passes instead
     (``_separate_in_turn``), the pairs nearest a support first, stopping
     early once no pair overlaps.
     """
@@ -229,7 +238,8 @@ def project_overlaps(particles, dynamic, contacts, walls, floors, passes, hold, 
         level = support_levels(particles, dynamic, contacts, walls, floors)
         order = support_order(contacts, level)
         for _ in range(passes):
-            overlapped = _separate_in_turn(particles, contacts, order, level) if m else False
+            overlapped = (_separate_in_turn(particles, contacts, order, level, walls, up)
+                          if m else False)
             if walls.present:
                 _clamp_inside(particles, dynamic, walls)
             if not overlapped:
@@ -343,8 +353,8 @@ def warm_up() -> None:
                        np.zeros(1, dtype=np.int64), np.full(1, -10.0), np.ones(1))
     start = particles.position.copy()
     for in_turn in (False, True):
-        project_overlaps(particles, dynamic, contacts, walls, np.ones(1, dtype=np.bool_), 2,
-                         True, in_turn)
+        project_overlaps(particles, dynamic, contacts, walls, np.ones(1, dtype=np.bool_),
+                         (0.0, 1.0, 0.0), 2, True, in_turn)
     pay_for_lift(particles, dynamic, pair_first, pair_second, start, np.ones(2), np.zeros(2))
 
 

@@ -785,8 +785,11 @@ def _seed_loads(bodies, dynamic, pairs, walls, pair_impulses, wall_impulses, set
     the touching contacts with a particle one level nearer a floor or a
     static particle (``spread_levels``; touching: a gap of at most
     SUPPORT_SLOP of r) and below it, shared equally; a
-    floor takes a level-0 particle's load. A cold contact that is not an
-    impact starts from its share along its normal. The sweeps correct the
+    floor takes a level-0 particle's load. The contacts of a cold particle
+    (none of its contacts warm-started from the cache) that are not impacts
+    start from their share along their normal; a particle with a warm
+    contact keeps the cache's impulses (a contact the cache dropped had
+    converged to 0), but its load still goes down. The sweeps correct the
     estimate and take back what opens, so it changes how fast the solve
     converges, not the constraints it converges to.
     """
@@ -825,6 +828,15 @@ def _seed_loads(bodies, dynamic, pairs, walls, pair_impulses, wall_impulses, set
         key[p] = -1 if level[p] == UNSUPPORTED else level[p]
     order = np.argsort(key, kind='mergesort')
     normal, resting = pairs.normal, pair_impulses.resting
+    # A particle with any warm contact is settled in: the sweeps start from the cache's
+    # impulses there, and a contact of it the cache dropped had converged to 0.
+    cold = np.ones(n, dtype=np.bool_)
+    for k in range(m):
+        if resting[k] > 0.0:
+            cold[pairs.first[k]] = cold[pairs.second[k]] = False
+    for c in range(walls.particle.size):
+        if wall_impulses.resting[c] > 0.0:
+            cold[walls.particle[c]] = False
     for s in range(n - 1, -1, -1):
         p = order[s]
         if key[p] < 1 or not dynamic[p]:
@@ -852,7 +864,7 @@ def _seed_loads(bodies, dynamic, pairs, walls, pair_impulses, wall_impulses, set
             load[q] += share
             approach = -dot3(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2],
                              nx, ny, nz)
-            if resting[k] == 0.0 and approach < settings.threshold:
+            if cold[p] and approach < settings.threshold:
                 resting[k] = share / along
     for c in range(walls.particle.size):
         p, axis, inward = walls.particle[c], walls.axis[c], walls.inward[c]
@@ -861,7 +873,7 @@ def _seed_loads(bodies, dynamic, pairs, walls, pair_impulses, wall_impulses, set
                 or level[p] != 0 or not dynamic[p]:
             continue
         approach = -inward * v[p, axis]
-        if wall_impulses.resting[c] == 0.0 and approach < settings.threshold:
+        if cold[p] and approach < settings.threshold:
             wall_impulses.resting[c] = load[p] / along
 
 
