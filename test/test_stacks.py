@@ -55,8 +55,7 @@ def gap(reason: str):
 
 
 PYRAMID_GAP = gap('the pyramid spreads sideways while the sweeps build the bottom row\'s '
-                  'horizontal thrust (measured 0.06 to 0.14 r under fast and balanced, '
-                  '0.013 r under accurate)')
+                  'horizontal thrust (measured 0.06 to 0.14 r under fast and balanced)')
 
 
 def deepest_overlap(world: World) -> float:
@@ -101,20 +100,18 @@ def test_column_of_20_spheres_keeps_its_top_within_1pct_r_for_10_s(preset, radiu
 
 # exact refuses friction, so it runs the frictionless pyramid only.
 PYRAMIDS = [pytest.param(preset, friction, id=f'{preset}-{label}',
-                         marks=[PYRAMID_GAP] if preset != 'exact' else [])
+                         marks=[PYRAMID_GAP] if preset in ('fast', 'balanced') else [])
             for preset in STEPPED + ('exact',)
             for friction, label in ((0.5, 'mu0.5'), (None, 'frictionless'))
             if preset != 'exact' or friction is None]
 # The settled pours' overlap where the sweeps do not converge in their budget and
 # the step's losses cannot pay to lift it out (docs/stability.md, "Dense contact").
-POUR2D = [pytest.param('fast', marks=gap('deepest overlap 0.019 r')),
-          pytest.param('balanced', marks=gap('deepest overlap 0.0145 r')),
-          pytest.param('accurate')]
-POUR3D = [pytest.param(preset, marks=gap(f'deepest overlap {depth} r in a box 5 spheres wide'))
-          for preset, depth in (('fast', 0.16), ('balanced', 0.15), ('accurate', 0.03))]
-DROP_ON_PILE = [pytest.param('fast', marks=gap('deepest overlap 0.020 r after the drop')),
-                pytest.param('balanced', marks=gap('deepest overlap 0.014 r after the drop')),
-                pytest.param('accurate')]
+POUR2D = [pytest.param('fast', marks=gap('deepest overlap above 1 % of r')),
+          pytest.param('balanced'), pytest.param('accurate')]
+POUR3D = [pytest.param(preset, marks=gap('deepest overlap above 1 % of r in a box 5 spheres '
+                                         'wide'))
+          for preset in ('fast', 'balanced')] + [pytest.param('accurate')]
+DROP_ON_PILE = list(STEPPED)
 
 
 @pytest.mark.parametrize('preset, friction', PYRAMIDS)

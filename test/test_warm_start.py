@@ -58,6 +58,10 @@ def sweeps_per_step(world: World, steps: int) -> list[int]:
     return out
 
 
+@pytest.mark.xfail(strict=True, reason='the supported projection lifts the packed discs out of '
+                   'their grooves by more than the step\'s losses pay, so the solve keeps its '
+                   'whole budget (measured 64 of 64 sweeps; 8 with shared pushes): '
+                   'docs/stability.md, "Dense contact"')
 def test_resting_pile_converges_in_few_sweeps_with_warm_starting():
     # Measured: warm 14 sweeps a step once settled (mean of steps 120-240; the
     # sweeps alone hold the pile, without passes after them); cold never gets

@@ -83,10 +83,11 @@ SUPPORT_SLOP = 0.01
 
 # Cosine: separation holds the particle nearer a support only where the pair
 # stands one above the other, its line of action within this of vertical
-# (0.95: 18 degrees), as in a column; slanted and side contacts (a hexagonal
-# pile's 60-degree grooves) share the push by inverse mass. Lower values hold
-# in grooves too, where a settled pile then lifts and falls back every step.
-STACK_ALIGNMENT = 0.95
+# (0.5: 60 degrees, so a hexagonal pile's grooves hold); side contacts share
+# the push by inverse mass. 1 holds only straight columns: a pyramid of 55
+# discs then collapses under `fast` and the shipped pile settles 20 times
+# deeper (docs/stability.md, "Dense contact").
+STACK_ALIGNMENT = 0.5
 
 # --- Broadphase (stages/detection) ---------------------------------------------------------------
 
