@@ -115,13 +115,8 @@ def pile_quality(position: np.ndarray, velocity: np.ndarray, radius: np.ndarray,
     return out
 
 
-def run_preset(scene, preset: str, steps: int, max_seconds: float) -> dict:
-    """Step ``scene`` under ``preset``; stop early after ``max_seconds`` of wall time."""
-    try:
-        world = World(scene.with_accuracy(_settings(preset)))
-    except SceneError as error:
-        # exact (event mode) refuses friction: say so in the table.
-        return {'label': preset, 'skipped': str(error).rsplit(': ', 1)[-1]}
+def timed_steps(world: World, steps: int, max_seconds: float) -> tuple[int, float, float]:
+    """Step ``world`` up to ``steps`` times or for ``max_seconds``; return (steps, s, CPU s)."""
     done, wall, cpu = 0, 0.0, 0.0
     while done < steps and wall < max_seconds:
         start, cpu_start = time.perf_counter(), time.process_time()
@@ -129,6 +124,17 @@ def run_preset(scene, preset: str, steps: int, max_seconds: float) -> dict:
         wall += time.perf_counter() - start
         cpu += time.process_time() - cpu_start
         done += 1
+    return done, wall, cpu
+
+
+def run_preset(scene, preset: str, steps: int, max_seconds: float) -> dict:
+    """Step ``scene`` under ``preset``; stop early after ``max_seconds`` of wall time."""
+    try:
+        world = World(scene.with_accuracy(_settings(preset)))
+    except SceneError as error:
+        # exact (event mode) refuses friction: say so in the table.
+        return {'label': preset, 'skipped': str(error).rsplit(': ', 1)[-1]}
+    done, wall, cpu = timed_steps(world, steps, max_seconds)
     s, walls = world.state, scene.effects.walls
     quality = pile_quality(s.position, s.velocity, s.radius, walls.low, walls.high,
                            scene.dimensions)
@@ -192,13 +198,7 @@ def run_pile3d(count: int, steps: int, preset: str, max_seconds: float = math.in
     """Pour the 3-D pile under ``preset``; return the real-time factor and quality."""
     scene = pour3d(count, accuracy=preset)
     world = World(scene)
-    done, wall, cpu = 0, 0.0, 0.0
-    while done < steps and wall < max_seconds:
-        start, cpu_start = time.perf_counter(), time.process_time()
-        world.step()
-        wall += time.perf_counter() - start
-        cpu += time.process_time() - cpu_start
-        done += 1
+    done, wall, cpu = timed_steps(world, steps, max_seconds)
     s, walls = world.state, scene.effects.walls
     quality = pile_quality(s.position, s.velocity, s.radius, walls.low, walls.high, 3)
     return dict(quality, label=preset, steps=done, ms=1e3 * wall / done,

@@ -144,6 +144,26 @@ UNSUPPORTED = np.iinfo(np.int64).max
 
 
 @njit(cache=True)
+def incident(n, first, second):
+    """Return (start, contact): the pairs of particle p are contact[start[p]:start[p + 1]]."""
+    m = first.size
+    start = np.zeros(n + 1, dtype=np.int64)
+    for k in range(m):
+        start[first[k] + 1] += 1
+        start[second[k] + 1] += 1
+    for p in range(n):
+        start[p + 1] += start[p]
+    fill = start[:n].copy()
+    contact = np.empty(2 * m, dtype=np.int64)
+    for k in range(m):
+        contact[fill[first[k]]] = k
+        fill[first[k]] += 1
+        contact[fill[second[k]]] = k
+        fill[second[k]] += 1
+    return start, contact
+
+
+@njit(cache=True)
 def spread_levels(level, first, second):
     """Fill ``level`` in place: each particle's distance in contacts from a level-0 one.
 
@@ -152,33 +172,21 @@ def spread_levels(level, first, second):
     with a level-k one becomes at most level k + 1. Shortest distances, so
     the result does not depend on the pairs' order.
     """
-    n, m = level.size, first.size
+    n = level.size
     queue = np.empty(n, dtype=np.int64)
     tail = 0
     for p in range(n):
         if level[p] == 0:
             queue[tail] = p
             tail += 1
-    start = np.zeros(n + 1, dtype=np.int64)
-    for k in range(m):
-        start[first[k] + 1] += 1
-        start[second[k] + 1] += 1
-    for p in range(n):
-        start[p + 1] += start[p]
-    fill = start[:n].copy()
-    neighbour = np.empty(2 * m, dtype=np.int64)
-    for k in range(m):
-        a, b = first[k], second[k]
-        neighbour[fill[a]] = b
-        fill[a] += 1
-        neighbour[fill[b]] = a
-        fill[b] += 1
+    start, contact = incident(n, first, second)
     head = 0
     while head < tail:
         p = queue[head]
         head += 1
         for s in range(start[p], start[p + 1]):
-            q = neighbour[s]
+            k = contact[s]
+            q = second[k] if first[k] == p else first[k]
             if level[q] == UNSUPPORTED:
                 level[q] = level[p] + 1
                 queue[tail] = q

@@ -36,7 +36,7 @@ from ...law.primitives import (apply_pair_normal, apply_tangential, apply_wall_n
                                push_pair, push_wall, RESTITUTION, spin_factor, STICK_FACTOR,
                                tangential_slip, WALLS)
 from ...model.tunables import MIN_SUPPORT_ALIGNMENT, SUPPORT_SLOP, WALL_SLOP
-from ...step.step_kernels import spread_levels, UNSUPPORTED
+from ...step.step_kernels import incident, spread_levels, UNSUPPORTED
 from .wall_kernels import WallPlanes
 
 # Cache keys are lower id * (MAX_CACHED_ID + 1) + higher id in int64: a world
@@ -755,26 +755,6 @@ def _warm_from(cache, ids, pairs, walls, pair_impulses, wall_impulses):
 
 
 @njit(cache=True)
-def _incident(n, first, second):
-    """Return (start, contact): the contacts of particle p are contact[start[p]:start[p + 1]]."""
-    m = first.size
-    start = np.zeros(n + 1, dtype=np.int64)
-    for k in range(m):
-        start[first[k] + 1] += 1
-        start[second[k] + 1] += 1
-    for p in range(n):
-        start[p + 1] += start[p]
-    fill = start[:n].copy()
-    contact = np.empty(2 * m, dtype=np.int64)
-    for k in range(m):
-        contact[fill[first[k]]] = k
-        fill[first[k]] += 1
-        contact[fill[second[k]]] = k
-        fill[second[k]] += 1
-    return start, contact
-
-
-@njit(cache=True)
 def _seed_loads(bodies, dynamic, pairs, walls, pair_impulses, wall_impulses, settings):
     """Start cold resting contacts from the static load they carry under gravity.
 
@@ -819,7 +799,7 @@ def _seed_loads(bodies, dynamic, pairs, walls, pair_impulses, wall_impulses, set
     touching = touching[:count]
     first, second = pairs.first[touching], pairs.second[touching]
     spread_levels(level, first, second)
-    start, incident = _incident(n, first, second)
+    start, incident_contact = incident(n, first, second)
     load = np.zeros(n)
     key = np.empty(n, dtype=np.int64)
     for p in range(n):
@@ -843,7 +823,7 @@ def _seed_loads(bodies, dynamic, pairs, walls, pair_impulses, wall_impulses, set
             continue
         supports = 0
         for t in range(start[p], start[p + 1]):
-            k = touching[incident[t]]
+            k = touching[incident_contact[t]]
             q = pairs.second[k] if pairs.first[k] == p else pairs.first[k]
             side = 1.0 if pairs.first[k] == p else -1.0
             along = side * dot3(normal[k, 0], normal[k, 1], normal[k, 2], up[0], up[1], up[2])
@@ -853,7 +833,7 @@ def _seed_loads(bodies, dynamic, pairs, walls, pair_impulses, wall_impulses, set
             continue
         share = load[p] / supports
         for t in range(start[p], start[p + 1]):
-            k = touching[incident[t]]
+            k = touching[incident_contact[t]]
             a, b = pairs.first[k], pairs.second[k]
             q = b if a == p else a
             side = 1.0 if a == p else -1.0
