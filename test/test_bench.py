@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import importlib.util
 import math
+import sys
 
 import pytest
 
@@ -117,15 +119,33 @@ def test_pile_bench_records_its_tables(tmp_path, monkeypatch, capsys):
     assert balanced[:2] == ['balanced', '1'] and balanced[9] == '0' and float(balanced[4]) > 0
 
 
-def test_pile_bench_mujoco_row_is_a_peer_row(tmp_path, capsys):
-    """With MuJoCo installed, its row starts with its name and gets the peer ratio."""
-    pytest.importorskip('mujoco')
-    from collision_node.bench.results import files, page
-    out = tmp_path / 'pile.json'
+def _pile_with_mujoco(out) -> list:
+    """Run the tiny pile bench with the MuJoCo row asked for; return the 3-D table's rows."""
     assert bench.main(['pile', '--steps', '1', '--presets', 'fast', '--no-pymunk',
                        '--count3d', '30', '--steps3d', '2', '--out', str(out)]) == 0
-    pour = _recorded_tables(out)[1]
-    balanced, peer = pour['rows']
+    return _recorded_tables(out)[1]['rows']
+
+
+def test_pile_bench_without_mujoco_says_so_and_keeps_its_own_rows(
+        tmp_path, capsys, monkeypatch):
+    """Without MuJoCo (an import that fails) there is no peer row, and a note says why."""
+    from collision_node.bench.contact.pile import MUJOCO_MISSING
+    monkeypatch.setitem(sys.modules, 'mujoco', None)
+    rows = _pile_with_mujoco(tmp_path / 'pile.json')
+    assert [row[0] for row in rows] == ['balanced']
+    assert MUJOCO_MISSING in capsys.readouterr().out
+
+
+def test_pile_bench_mujoco_row_is_a_peer_row(tmp_path, capsys):
+    """With MuJoCo installed, its row starts with its name and gets the peer ratio."""
+    from collision_node.bench.results import files, page
+    if importlib.util.find_spec('mujoco') is None:
+        # Optional peer (bench-requirements.txt): its absence is the case above.
+        rows = _pile_with_mujoco(tmp_path / 'pile.json')
+        assert [row[0] for row in rows] == ['balanced']
+        return
+    out = tmp_path / 'pile.json'
+    balanced, peer = _pile_with_mujoco(out)
     assert peer[0].startswith('MuJoCo ') and peer[1] == '2' and int(peer[13]) >= 0
     assert balanced[13:] == ['-', '-']
     rendered = page.peer_columns(page.tables(files.read(out))[1])
