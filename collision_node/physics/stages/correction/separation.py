@@ -10,18 +10,20 @@ velocity, is not used: it is how an elastic gas gains energy without bound.
 Without gravity there is one pass, and a particle that its push would take
 into a wall stays put while its partner takes the whole push (the wall
 clamp would otherwise put it back and leave the overlap). Under gravity
-there are up to ``GRAVITY_PASSES`` Gauss-Seidel passes instead: pair after
-pair, each from the positions as the previous pushes left them, so a push
-travels up a stack in one pass; two dynamic particles move by
-m_a dx_a = -m_b dx_b, so the centre of mass of a cluster that no wall or
-static particle supports never moves (no lift, no velocity paid: its
-momentum is untouched). Only pairs that overlap are pushed (speculative
+there are up to ``GRAVITY_PASSES`` Gauss-Seidel passes instead, each from
+the positions as the previous pushes left them, the pairs nearest a support
+(a floor a particle rests on, or a static particle) first. Of a pair
+standing within ``STACK_ALIGNMENT`` of vertical, the particle nearer a
+support holds and the other takes the whole push (unless that takes it into
+a wall), so a push travels up a stack in one pass. Otherwise two dynamic
+particles move by m_a dx_a = -m_b dx_b, so the centre of mass of a cluster
+that no wall or static particle supports never moves (no lift, no velocity
+paid: its momentum is untouched). Only pairs that overlap are pushed (speculative
 contacts, found before they touch, have a gap instead). After each pass,
 particles past a wall plane are placed back on it.
 
-Under gravity, moving a particle changes its potential energy. Pushes
-between two dynamic particles leave the total potential unchanged; a push
-off a static particle or a wall lifts. The budget is local: per cluster of
+Under gravity, moving a particle changes its potential energy: a push that
+lifts is paid for. The budget is local: per cluster of
 touching particles (the components of this step's contact graph through
 dynamic particles), a lift may restore up to the energy the contact law
 and the effects removed from that cluster in this step
@@ -179,7 +181,8 @@ class SeparationStage(Stage):
     def describe(self) -> str:
         """Say what the stage does."""
         text = ('position projection along N shared by inverse mass (velocities untouched; '
-                f'under gravity up to {GRAVITY_PASSES} Gauss-Seidel passes, pair after pair, '
+                f'under gravity up to {GRAVITY_PASSES} Gauss-Seidel passes from the supports up, '
+                'the particle nearer a floor or static particle holding, '
                 'and a lift beyond the step\'s losses '
                 'is paid from the lifted particles\' speed, or not made)')
         if self.walls is not None:
