@@ -779,6 +779,18 @@ def _seed_loads(bodies, dynamic, pairs, walls, pair_impulses, wall_impulses, set
         return
     up = (-settings.fall_x / fall, -settings.fall_y / fall, -settings.fall_z / fall)
     n, m = v.shape[0], pairs.first.size
+    # A particle with any warm contact is settled in: the sweeps start from the cache's
+    # impulses there, and a contact of it the cache dropped had converged to 0.
+    cold = np.ones(n, dtype=np.bool_)
+    for k in range(m):
+        if pair_impulses.resting[k] > 0.0:
+            cold[pairs.first[k]] = cold[pairs.second[k]] = False
+    for c in range(walls.particle.size):
+        if wall_impulses.resting[c] > 0.0:
+            cold[walls.particle[c]] = False
+    # Only a cold dynamic particle's touching contacts are seeded: a settled world, where
+    # every such contact is warm, skips the levels and the sort.
+    seeds = False
     level = np.full(n, UNSUPPORTED, dtype=np.int64)
     for p in range(n):
         if not dynamic[p]:
@@ -789,6 +801,7 @@ def _seed_loads(bodies, dynamic, pairs, walls, pair_impulses, wall_impulses, set
         if walls.allowance[c] * dt <= SUPPORT_SLOP * radius[p] \
                 and walls.inward[c] * up[walls.axis[c]] >= MIN_SUPPORT_ALIGNMENT:
             level[p] = 0
+            seeds = seeds or (cold[p] and dynamic[p])
     touching = np.empty(m, dtype=np.int64)
     count = 0
     for k in range(m):
@@ -796,6 +809,9 @@ def _seed_loads(bodies, dynamic, pairs, walls, pair_impulses, wall_impulses, set
         if pairs.allowance[k] * dt <= SUPPORT_SLOP * min(radius[a], radius[b]):
             touching[count] = k
             count += 1
+            seeds = seeds or (cold[a] and dynamic[a]) or (cold[b] and dynamic[b])
+    if not seeds:
+        return
     touching = touching[:count]
     first, second = pairs.first[touching], pairs.second[touching]
     spread_levels(level, first, second)
@@ -808,15 +824,6 @@ def _seed_loads(bodies, dynamic, pairs, walls, pair_impulses, wall_impulses, set
         key[p] = -1 if level[p] == UNSUPPORTED else level[p]
     order = np.argsort(key, kind='mergesort')
     normal, resting = pairs.normal, pair_impulses.resting
-    # A particle with any warm contact is settled in: the sweeps start from the cache's
-    # impulses there, and a contact of it the cache dropped had converged to 0.
-    cold = np.ones(n, dtype=np.bool_)
-    for k in range(m):
-        if resting[k] > 0.0:
-            cold[pairs.first[k]] = cold[pairs.second[k]] = False
-    for c in range(walls.particle.size):
-        if wall_impulses.resting[c] > 0.0:
-            cold[walls.particle[c]] = False
     for s in range(n - 1, -1, -1):
         p = order[s]
         if key[p] < 1 or not dynamic[p]:
