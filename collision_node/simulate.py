@@ -48,6 +48,7 @@ from .physics.step.kernels import prepare as prepare_kernels
 from .physics.model.scene import load_scene
 from .physics.model.validation import SceneError, one_line
 from .physics.step.world import NonFiniteStateError, World
+from .physics.step.threads import set_default as set_default_threads
 
 # Runs shorter than this never show a progress bar.
 PROGRESS_DELAY_S = 2.0
@@ -120,6 +121,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument('--accuracy', help='preset (fast, balanced, accurate, exact) or a '
                         'YAML/JSON mapping such as "{preset: fast, substeps: 2}"; '
                         'overrides the scene\'s accuracy')
+    parser.add_argument('--threads', type=int, default=0, metavar='N',
+                        help='threads the compiled kernels share a step among (default 0: '
+                             'every core; 1: single-thread kernels); the results are the '
+                             'same for every N')
     return parser
 
 
@@ -419,6 +424,7 @@ def _main(argv: Optional[Sequence[str]]) -> int:
         if args.duration is not None and not (math.isfinite(args.duration)
                                               and args.duration >= 0):
             raise UsageError(f'--duration must be a finite number >= 0, got {args.duration}')
+        set_default_threads(args.threads)
         if args.compare_presets:
             check_compare(args)
         if args.out is not None:

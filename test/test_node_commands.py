@@ -223,6 +223,7 @@ def test_parameter_changes_take_effect_and_reset_restores_time_zero(fresh):
     ('frame_id', '', 'frame_id'),
     ('scene', 'oblique_pair', 'read-only'),
     ('max_particles', 10, 'read-only'),
+    ('threads', 1, 'read-only'),
 ])
 def test_invalid_parameter_is_refused_with_a_reason(node, name, value, why):
     result = set_parameters(node, **{name: value})[0]

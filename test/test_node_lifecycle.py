@@ -66,6 +66,8 @@ def test_scene_file_parameter_then_sigterm_exits_zero(tmp_path):
     ('accuracy:=sloppy', 'parameter accuracy: unknown preset'),
     ('frame_id:=my frame', 'frame_id: must be a frame name'),
     ('max_particles:=3', 'exceed max_particles = 3'),
+    ('threads:=1000', 'parameter threads: 1000 threads asked for, but this process can run '
+                      'at most'),
 ])
 def test_bad_start_up_exits_2_with_one_error_line(tmp_path, parameter, message):
     result = subprocess.run(

@@ -199,7 +199,8 @@ def test_a_benchmark_writes_its_results_file(tmp_path, capsys):
     # The temporary folder is not named: a committed file names no path of the machine.
     assert data['command'] == ('python -m collision_node.bench exact --counts 200 --steps 2 '
                                '--out <temporary folder>')
-    assert data['options'] == {'counts': [200], 'steps': [2]}
+    # Every option with its value, the thread count of every world included (0: every core).
+    assert data['options'] == {'counts': [200], 'steps': [2], 'threads': 0}
     table = [block for block in data['output'] if block['kind'] == 'table'][0]
     assert [row[0] for row in table['rows']] == ['200']
     # What was printed is what the file holds.

@@ -22,9 +22,10 @@ from collision_node.simulate import main
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def run_cli(*args: str, cwd: Path = ROOT) -> subprocess.CompletedProcess:
-    """Run ``python -m collision_node.simulate`` in a fresh interpreter."""
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get('PYTHONPATH', ''))
+def run_cli(*args: str, cwd: Path = ROOT, **environment: str) -> subprocess.CompletedProcess:
+    """Run ``python -m collision_node.simulate`` in a fresh interpreter (``environment`` added)."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get('PYTHONPATH', ''),
+               **environment)
     return subprocess.run([sys.executable, '-m', 'collision_node.simulate', *args], cwd=cwd,
                           env=env, capture_output=True, text=True, timeout=120)
 
@@ -105,6 +106,9 @@ def test_cli_success_exits_zero_and_writes_json(tmp_path):
     (('oblique_pair', '--steps', '1', '--out', '/nonexistent-dir/x.json'),
      '--out /nonexistent-dir/x.json: No such file or directory'),
     (('BAD',), 'particles[1].radius: must be >= 1e-30, got -0.5'),
+    (('oblique_pair', '--threads', '-1'), '--threads: must be an integer in 0..1024'),
+    (('oblique_pair', '--threads', '1000'), '--threads: 1000 threads asked for, but this '
+                                            'process can run at most'),
 ])
 def test_cli_bad_input_exits_two_with_one_line(tmp_path, args, says):
     bad = tmp_path / 'bad.yaml'
@@ -117,6 +121,21 @@ def test_cli_bad_input_exits_two_with_one_line(tmp_path, args, says):
     assert len(lines) == 1, done.stderr
     assert lines[0].startswith('simulate: error: ') and says in lines[0]
     assert 'Traceback' not in done.stderr and done.stdout == ''
+
+
+def test_every_thread_count_writes_the_same_final_state(tmp_path):
+    """The 10k gas under fast: its loops are shared among threads, its result is one."""
+    states = []
+    for threads in ('1', '2'):
+        out = tmp_path / f'gas_{threads}.json'
+        # A pool of 2 threads whatever the suite's own (NUMBA_NUM_THREADS=1 included).
+        done = run_cli('gas_10k', '--steps', '4', '--accuracy', 'fast', '--threads', threads,
+                       '--out', str(out), '--quiet', NUMBA_NUM_THREADS='2')
+        assert done.returncode == 0, done.stderr
+        states.append(json.loads(out.read_text()))
+    one, two = states
+    assert one['stats']['collisions'] == two['stats']['collisions'] > 0
+    assert one['particles'] == two['particles']
 
 
 def test_non_finite_state_is_refused(world_from):
@@ -231,8 +250,8 @@ def test_signal_stops_the_run_and_keeps_the_work(tmp_path, sig):
         result['stats']['kinetic_energy'][0], rel=1e-9)
 
 
-# One step of this gas takes about 8 s on an idle 2-core machine (10,000 particles,
-# each step split into 1000 substeps of the accurate preset): a signal sent once the
+# One step of this gas takes about 8 s on one thread of an idle 2-core machine (10,000
+# particles, each step split into 1000 substeps of the accurate preset): a signal sent once the
 # progress bar shows (2 s into the run) lands inside the first step.
 HUGE_STEP_SCENE = '''name: huge_step
 dimensions: 2
@@ -253,7 +272,8 @@ def start_huge_step(tmp_path: Path) -> tuple[subprocess.Popen, Path, Path]:
     scene.write_text(HUGE_STEP_SCENE)
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get('PYTHONPATH', ''))
     process = subprocess.Popen(
-        [sys.executable, '-m', 'collision_node.simulate', str(scene), '--out', str(out)],
+        [sys.executable, '-m', 'collision_node.simulate', str(scene), '--out', str(out),
+         '--threads', '1'],
         cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
         # The bar is drawn 2 s into the run even while no step has ended.

@@ -10,7 +10,9 @@ one that needs ROS (``bench.node``) costs the others nothing. Every
 subcommand but those in ``OWN_RESULTS`` also takes ``--out FILE`` and
 ``--results-dir [DIR]`` and then writes its results as JSON
 (:mod:`collision_node.bench.results.files`); ``report`` renders
-docs/performance.md from those files.
+docs/performance.md from those files. Every subcommand takes
+``--threads N``: the thread count of every world it builds (0, the
+default: every core).
 """
 
 from __future__ import annotations
@@ -35,10 +37,23 @@ SUBCOMMANDS: dict[str, str] = {
     'resting': 'collision_node.bench.contact.resting',
     'report': 'collision_node.bench.results.page',
     'stacks': 'collision_node.bench.contact.stacks',
+    'scaling': 'collision_node.bench.scaling',
 }
 # Subcommands that write files of their own instead of a results file (as does any
 # subcommand that declares an --out of its own).
 OWN_RESULTS = frozenset({'accuracy', 'report'})
+
+
+def _with_threads(args: argparse.Namespace) -> int:
+    """Make ``args.threads`` every world's thread count; return 0, or 2 with a reason."""
+    from ..physics.model.validation import SceneError
+    from ..physics.step.threads import set_default
+    try:
+        set_default(args.threads)
+    except SceneError as error:
+        print(f'bench {args.command}: {error}', file=sys.stderr)
+        return 2
+    return 0
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -52,13 +67,18 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         module = importlib.import_module(SUBCOMMANDS[argv[0]])
         sub = commands.add_parser(argv[0], help=(module.__doc__ or '').split('\n')[0])
         module.add_arguments(sub)
+        if '--threads' not in sub._option_string_actions:
+            sub.add_argument('--threads', type=int, default=0, metavar='N',
+                             help='threads the kernels of every world share (default 0: every '
+                                  'core; 1: single-thread kernels)')
         # A module with an --out of its own writes its own files.
         if argv[0] in OWN_RESULTS or '--out' in sub._option_string_actions:
-            return int(module.run(parser.parse_args(argv)))
+            args = parser.parse_args(argv)
+            return _with_threads(args) or int(module.run(args))
         from .results import files
         files.add_arguments(sub)
         args = parser.parse_args(argv)
-        return files.run_recorded(argv[0], module.run, args, argv)
+        return _with_threads(args) or files.run_recorded(argv[0], module.run, args, argv)
     for name in SUBCOMMANDS:
         commands.add_parser(name)
     parser.parse_args(argv)  # prints usage and exits 2 for an unknown subcommand

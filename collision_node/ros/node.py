@@ -37,6 +37,7 @@ from ..physics.step.kernels import prepare as prepare_kernels
 from ..physics.model.scene import load_scene
 from ..physics.model.validation import SceneError
 from ..physics.step.world import NonFiniteStateError, World
+from ..physics.step.threads import resolve as resolve_threads
 from ..recording.bag import BagTargetError, check_target
 from ..recording.definitions import DefinitionError
 from ..recording.recorder import FRAME_MESSAGES, Recorder
@@ -112,7 +113,8 @@ class CollisionNode(Node):
             self.scene = self.scene.with_accuracy(
                 parse_accuracy_text(value['accuracy'], self.scene.effects,
                                     'parameter accuracy'))
-        self.world = World(self.scene, max_particles=value['max_particles'])
+        self.world = World(self.scene, max_particles=value['max_particles'],
+                           threads=resolve_threads(value['threads'], 'parameter threads'))
         # Compiled once, then loaded from the cache; only a compile is logged.
         prepare_kernels(self.get_logger().info)
         self.real_time_factor = value['real_time_factor']

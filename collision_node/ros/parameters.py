@@ -11,6 +11,7 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
 from rclpy.parameter import Parameter
 
 from ..physics.model.scene import MAX_SCENE_PARTICLES
+from ..physics.model.tunables import MAX_THREADS
 
 # The shipped scene the node runs when no scene is given.
 DEFAULT_SCENE = 'elastic_break'
@@ -27,6 +28,9 @@ REAL_TIME_FACTOR_RANGE = (0.001, 1000.0)
 PUBLISH_RATE_RANGE = (0.1, 1000.0)
 # Particles the world may hold (default 100,000): at most what one scene may.
 MAX_PARTICLES_RANGE = (1, MAX_SCENE_PARTICLES)
+# Threads the kernels share a step among (default 0: every core); a count
+# over what the process can run (its cores) is refused at start-up.
+THREADS_RANGE = (0, MAX_THREADS)
 
 
 def _descriptor(description: str, kind: int, read_only: bool = False,
@@ -69,6 +73,10 @@ PARAMETERS: dict[str, tuple[Any, ParameterDescriptor]] = {
     'max_particles': (100_000, _descriptor(
         'Most particles the world may hold; larger spawns are rejected',
         ParameterType.PARAMETER_INTEGER, read_only=True, integers=MAX_PARTICLES_RANGE)),
+    'threads': (0, _descriptor(
+        'Threads the compiled kernels share each step among; 0: every core, 1: single-thread '
+        'kernels (results are the same for every count)',
+        ParameterType.PARAMETER_INTEGER, read_only=True, integers=THREADS_RANGE)),
     'record': ('', _descriptor(
         'Record what the node publishes as a rosbag2 bag (MCAP) in this new folder, '
         'stamped with simulated time; empty: no recording',

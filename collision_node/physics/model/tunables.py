@@ -253,3 +253,33 @@ MAX_COLORS = 32
 # How a stage may run: its compiled kernels (the default and what every preset
 # uses) or the vectorised numpy law (the tests' reference).
 BACKENDS = ('kernel', 'numpy')
+
+# --- Threads (step/threads.py) -----------------------------------------------------------------
+
+# A kernel loop runs on several threads only over at least this many items
+# (particles or pairs, default 4096); shorter loops run on the calling
+# thread. Starting a parallel region costs a few microseconds, about what
+# 100 to 300 items of a loop cost, so a small scene (a 240-disc pile) would
+# pay more to share its loops than it saves. It decides where a loop runs,
+# never what it computes, with one exception: a contact solve of at least
+# this many pairs visits them colour by colour at every thread count (the
+# order a shared solve needs, so that one thread gives the same result),
+# a smaller one in the broadphase's pair order.
+PARALLEL_MIN_ITEMS = 4096
+# Items per block of a parallel loop that gathers what it keeps (pairs that
+# overlap, pairs near each other): each block fills its own slice, then the
+# blocks are joined in order, so the list is the serial loop's whatever
+# thread ran which block (default 2048; any value, the same results).
+PARALLEL_BLOCK_ITEMS = 2048
+# Pairs of one colour the contact solve visits on several threads (default
+# 256); a smaller colour is visited on the calling thread (the same
+# result: the pairs of a colour share no dynamic particle).
+PARALLEL_MIN_BATCH = 256
+# Pairs of a colour one thread visits at a time (default 64): small enough
+# that a colour of a few hundred pairs spreads over every thread.
+PARALLEL_SOLVE_BLOCK = 64
+# Most threads a world may be given (the runner's --threads, the node's
+# threads parameter, the benchmarks' --threads); numba's pool is sized once
+# per process (NUMBA_NUM_THREADS, default the machine's cores), so a count
+# over the pool is refused with what the pool holds.
+MAX_THREADS = 1024

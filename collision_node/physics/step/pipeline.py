@@ -84,6 +84,9 @@ class StepContext:
     # Where the contact law records the impacts it resolves; None while
     # nobody reads them (recording then costs nothing).
     impacts: Optional[ImpactLog] = None
+    # Threads the kernels may share this step's loops among (``threads.py``):
+    # 1 runs every loop serially; any count gives the same result.
+    threads: int = 1
     # Energy the contact law and the effects removed in this (sub)step, per
     # particle, J: the separation stage budgets a lift per cluster of
     # touching particles from it, never from losses elsewhere. Kept only

@@ -22,6 +22,7 @@ from ..stages.detection.broadphase import check_pair_budget, StepTooLarge, swept
 from ..stages.sleeping.sleep import asleep_count, sleepers_touching, wake_islands
 from .pipeline import StepContext, StepStats
 from .step_kernels import all_finite
+from . import threads as thread_count
 from .timing import StepProfile, build_profile
 from ..model.scene import Scene, parse_spawn
 from ..model.state import ParticleState
@@ -43,10 +44,17 @@ class NonFiniteStateError(FloatingPointError):
 class World:
     """Particles of one scene, stepped with a fixed dt."""
 
-    def __init__(self, scene: Scene, max_particles: Optional[int] = None) -> None:
-        """Build the pipeline and load the scene's initial state."""
+    def __init__(self, scene: Scene, max_particles: Optional[int] = None,
+                 threads: Optional[int] = None) -> None:
+        """Build the pipeline and load the scene's initial state.
+
+        ``threads``: how many threads the compiled kernels share a step's
+        loops among (``step/threads.py``; None or 0: every core). The
+        state after any number of steps is the same for every count.
+        """
         self.scene = scene
         self.max_particles = max_particles
+        self.threads = thread_count.resolve(threads)
         # Impacts are recorded only while asked for (record_impacts).
         self.impact_log: Optional[ImpactLog] = None
         if max_particles is not None and len(scene.initial) > max_particles:
@@ -123,13 +131,14 @@ class World:
         substeps = scene.accuracy.substeps
         sub_dt = scene.dt / substeps
         run = self.pipeline.run
+        thread_count.use(self.threads)
         for _ in range(count):
             begin = perf_counter()
             start = self.time
             for k in range(substeps):
                 run(StepContext(self.state, sub_dt, scene.dimensions, scene.effects,
                                 scene.accuracy, self.stats, time=start + k * sub_dt,
-                                impacts=self.impact_log))
+                                impacts=self.impact_log, threads=self.threads))
             self.steps += 1
             self._check_finite()
             self.step_seconds += perf_counter() - begin

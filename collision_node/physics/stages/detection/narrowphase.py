@@ -15,10 +15,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from .narrowphase_kernels import find_overlaps
+from .narrowphase_kernels import find_overlaps, find_overlaps_parallel
 from ...model.tunables import SPECULATIVE_MARGIN
 from ...step.pipeline import Contacts, Stage, StepContext
 from ...step.step_kernels import ParticleArrays
+from ...step.threads import parallel
 
 
 def line_of_action(offset: np.ndarray, relative_velocity: np.ndarray
@@ -52,12 +53,14 @@ def line_of_action(offset: np.ndarray, relative_velocity: np.ndarray
 
 def find_contacts(position: np.ndarray, velocity: np.ndarray, radius: np.ndarray,
                   inv_mass: np.ndarray, first: np.ndarray, second: np.ndarray,
-                  ahead: float = 0.0, margin: float = 0.0, sweep: float = 0.0) -> Contacts:
+                  ahead: float = 0.0, margin: float = 0.0, sweep: float = 0.0,
+                  threads: int = 1) -> Contacts:
     """Return the overlapping pairs among candidates (first, second), one compiled pass.
 
     With ``ahead`` (m) or ``margin`` (of the mean radius) also the pairs
     within that gap (speculative contacts, negative penetration), with
-    ``sweep`` (s) also those within (|v_i| + |v_j|) sweep.
+    ``sweep`` (s) also those within (|v_i| + |v_j|) sweep. ``threads``:
+    how many threads may share the test (the same result for any count).
     """
     if first.shape[0] == 0:
         return Contacts.empty()
@@ -65,9 +68,10 @@ def find_contacts(position: np.ndarray, velocity: np.ndarray, radius: np.ndarray
                                np.ascontiguousarray(velocity, dtype=float),
                                np.ascontiguousarray(radius, dtype=float),
                                np.ascontiguousarray(inv_mass, dtype=float))
-    found = find_overlaps(particles, np.ascontiguousarray(first, dtype=np.int64),
-                          np.ascontiguousarray(second, dtype=np.int64), float(ahead),
-                          float(margin), float(sweep))
+    kernel = find_overlaps_parallel if parallel(threads, first.shape[0]) else find_overlaps
+    found = kernel(particles, np.ascontiguousarray(first, dtype=np.int64),
+                   np.ascontiguousarray(second, dtype=np.int64), float(ahead), float(margin),
+                   float(sweep))
     if found.first.size == 0:
         return Contacts.empty()
     return Contacts(i=found.first, j=found.second, normal=found.normal,
@@ -103,7 +107,7 @@ class NarrowphaseStage(Stage):
                 ahead, margin = threshold * ctx.dt, SPECULATIVE_MARGIN
                 sweep = ctx.dt if self.impacts else 0.0
         ctx.contacts = find_contacts(s.position, s.velocity, s.radius, s.inv_mass, ctx.pair_i,
-                                     ctx.pair_j, ahead, margin, sweep)
+                                     ctx.pair_j, ahead, margin, sweep, ctx.threads)
         if len(ctx.contacts):
             deepest = float(ctx.contacts.penetration.max())
             ctx.stats.max_penetration = max(ctx.stats.max_penetration, deepest)

@@ -8,10 +8,11 @@ from typing import NamedTuple
 import numpy as np
 
 from ...step import numba_cache  # noqa: F401,I100 (chooses numba's cache directory first)
-from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
+from numba import njit, prange  # noqa: E402,I100 (after the cache directory is chosen)
 
 from ...law.primitives import dot3, line_of_action  # noqa: E402
 from ...step.step_kernels import ParticleArrays  # noqa: E402
+from ...model.tunables import PARALLEL_BLOCK_ITEMS  # noqa: E402
 
 
 class ContactArrays(NamedTuple):
@@ -39,13 +40,64 @@ def find_overlaps(particles, candidate_first, candidate_second, ahead, margin, s
     cover in that time, (|v1| + |v2|) sweep: impacts found before they
     touch, also where the solve's impulses turn a pair towards each other.
     """
+    m = candidate_first.size
+    out = ContactArrays(np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64),
+                        np.empty((m, 3)), np.empty(m))
+    kept = _overlaps_in(particles, candidate_first, candidate_second, (ahead, margin, sweep),
+                        out, 0, m, 0)
+    return ContactArrays(out.first[:kept], out.second[:kept], out.normal[:kept],
+                         out.penetration[:kept])
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def find_overlaps_parallel(particles, candidate_first, candidate_second, ahead, margin,
+                           sweep):
+    """Return ``find_overlaps``' result, blocks of candidates tested on the threads.
+
+    Each block writes its contacts into its own rows; the blocks are then
+    joined in order, so the result is the serial one's whatever the thread count.
+    """
+    m = candidate_first.size
+    out = ContactArrays(np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64),
+                        np.empty((m, 3)), np.empty(m))
+    blocks = (m + PARALLEL_BLOCK_ITEMS - 1) // PARALLEL_BLOCK_ITEMS
+    ends = np.empty(blocks, dtype=np.int64)
+    for block in prange(blocks):
+        start = block * PARALLEL_BLOCK_ITEMS
+        ends[block] = _overlaps_in(particles, candidate_first, candidate_second,
+                                   (ahead, margin, sweep), out, start,
+                                   min(start + PARALLEL_BLOCK_ITEMS, m), start)
+    return _joined(out, ends)
+
+
+@njit(cache=True)
+def _joined(out, ends):
+    """Return the rows block b wrote (b * PARALLEL_BLOCK_ITEMS .. ends[b] - 1), in block order."""
+    kept = 0
+    first, second, normal, penetration = out
+    for block in range(ends.size):
+        for row in range(block * PARALLEL_BLOCK_ITEMS, ends[block]):
+            first[kept], second[kept], penetration[kept] = first[row], second[row], \
+                penetration[row]
+            for d in range(3):
+                normal[kept, d] = normal[row, d]
+            kept += 1
+    return ContactArrays(first[:kept], second[:kept], normal[:kept], penetration[:kept])
+
+
+@njit(cache=True)
+def _overlaps_in(particles, candidate_first, candidate_second, gaps, out, start, stop, kept):
+    """Write the contacts among candidates start .. stop - 1 from row ``kept`` of ``out``.
+
+    ``gaps`` is (ahead, margin, sweep) as ``find_overlaps`` takes them;
+    returns the row after the last one written. A function of its own
+    (never inlined): numba's parallel loops lose the stores of inlined code.
+    """
+    ahead, margin, sweep = gaps
+    first, second, normal, penetration = out
     position, velocity = particles.position, particles.velocity
     radius, inv_mass = particles.radius, particles.inv_mass
-    m = candidate_first.size
-    first, second = np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64)
-    normal, penetration = np.empty((m, 3)), np.empty(m)
-    kept = 0
-    for k in range(m):
+    for k in range(start, stop):
         a, b = candidate_first[k], candidate_second[k]
         ox = position[a, 0] - position[b, 0]
         oy = position[a, 1] - position[b, 1]
@@ -75,7 +127,7 @@ def find_overlaps(particles, candidate_first, candidate_second, ahead, margin, s
         normal[kept, 0], normal[kept, 1], normal[kept, 2] = nx, ny, nz
         penetration[kept] = reach - distance
         kept += 1
-    return ContactArrays(first[:kept], second[:kept], normal[:kept], penetration[:kept])
+    return kept
 
 
 def warm_up() -> None:
@@ -84,10 +136,11 @@ def warm_up() -> None:
     particles = ParticleArrays(np.array([[0.0, 0.0, 0.0], [1.9, 0.0, 0.0]]),
                                np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]), np.ones(2),
                                np.ones(2))
-    find_overlaps(particles, np.array([1], dtype=np.int64), np.array([0], dtype=np.int64),
-                  0.0, 0.0, 0.0)
+    for kernel in (find_overlaps, find_overlaps_parallel):
+        kernel(particles, np.array([1], dtype=np.int64), np.array([0], dtype=np.int64), 0.0,
+               0.0, 0.0)
 
 
 def kernels() -> list:
     """Return the compiled kernels of this module (for ``kernels.prepare``)."""
-    return [find_overlaps]
+    return [find_overlaps, find_overlaps_parallel]

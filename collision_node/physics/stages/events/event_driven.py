@@ -376,7 +376,8 @@ class EventDrivenStage(Stage):
             self._fallback.run(StepContext(state=ctx.state, dt=sub_dt,
                                            dimensions=ctx.dimensions, effects=ctx.effects,
                                            accuracy=settings, stats=ctx.stats,
-                                           time=ctx.time + k * sub_dt, impacts=ctx.impacts))
+                                           time=ctx.time + k * sub_dt, impacts=ctx.impacts,
+                                           threads=ctx.threads))
         ctx.stats.fallback_steps += 1
         self.time += ctx.dt
         self._state = None      # event mode starts afresh from the new state

@@ -73,7 +73,7 @@ class BatchedImpulseStage(Stage):
         result = jacobi_sweeps(
             tuple(Bodies(velocity, _NO_SPIN, np.ascontiguousarray(state.inv_mass, dtype=float),
                          _NO_VALUES)),
-            tuple(StepContacts(i, j, normal, _NO_ROWS, _NO_VALUES)),
+            tuple(StepContacts(i, j, normal, _NO_ROWS, _NO_VALUES, _NO_ROWS)),
             tuple(Coefficients(own, _NO_VALUES, float(self.restitution), 0.0, 0.0)),
             int(self.iterations))
         if velocity is not state.velocity:

@@ -27,7 +27,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ...step import numba_cache  # noqa: F401,I100 (chooses numba's cache directory first)
-from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
+from numba import njit, prange  # noqa: E402,I100 (after the cache directory is chosen)
 
 from ...law.primitives import (apply_pair_normal, apply_tangential, apply_wall_normal, Bodies,
                                BOOKED, book_loss, book_pair_loss, closing_allowance,
@@ -35,7 +35,8 @@ from ...law.primitives import (apply_pair_normal, apply_tangential, apply_wall_n
                                friction_accumulated, into_cone, loss_share, pair_friction_spun,
                                push_pair, push_wall, RESTITUTION, spin_factor, STICK_FACTOR,
                                tangential_slip, WALLS)
-from ...model.tunables import MIN_SUPPORT_ALIGNMENT, SUPPORT_SLOP, WALL_SLOP
+from ...model.tunables import (MIN_SUPPORT_ALIGNMENT, PARALLEL_MIN_BATCH, PARALLEL_SOLVE_BLOCK,
+                               SUPPORT_SLOP, WALL_SLOP)
 from ...step.step_kernels import incident, spread_levels, UNSUPPORTED
 from .wall_kernels import WallPlanes
 
@@ -63,6 +64,7 @@ class SolverSettings(NamedTuple):
     fall_x: float            # m/s: the velocity gravity adds in the (sub)step, g dt (0, 0, 0:
     fall_y: float            # no gravity); cold resting contacts start from the static load
     fall_z: float            # this weight puts on them (``_seed_loads``)
+    threads: int             # threads a colour's pairs may be shared among (1: serial)
 
 
 class StepContacts(NamedTuple):
@@ -73,6 +75,8 @@ class StepContacts(NamedTuple):
     normal: np.ndarray       # (m, 3) line of action, from j to i
     visit_order: np.ndarray  # the sweeps' order with ``colour_order`` (else empty)
     gap: np.ndarray          # (m,) |p_i - p_j| - r_i - r_j, m (> 0: speculative; empty: none)
+    colour_start: np.ndarray  # colour c is visit_order[colour_start[c]:colour_start[c + 1]],
+    #                           overflow pairs after the last (empty: no colours)
 
 
 class Coefficients(NamedTuple):
@@ -112,6 +116,7 @@ class PairContacts(NamedTuple):
     order: np.ndarray        # the sweeps' visit order
     allowance: np.ndarray    # (m,) m/s the pair may close by in the next step (gap / dt)
     ahead: np.ndarray        # (m,) the pair has a gap: found before it touches
+    colour_start: np.ndarray  # colour batches of ``order`` (``StepContacts``; empty: none)
 
 
 class WallContacts(NamedTuple):
@@ -441,9 +446,14 @@ def _start_solve(bodies, marks, pairs, walls, pair_impulses, wall_impulses, sett
     return single
 
 
-@njit(cache=True)
-def _sweep_pairs(bodies, marks, pairs, impulses, settings, losses):
-    """Visit every pair once in visit order (one Gauss-Seidel sweep); return whether any did."""
+@njit(cache=True, inline='always')
+def _visit_pair(k, bodies, marks, pairs, impulses, settings, per_particle):
+    """Visit pair k once (Gauss-Seidel); return (applied, energy removed, lost to friction).
+
+    Writes pair k's impulses and its two particles only (velocities, spins,
+    marks, per-particle losses); the caller adds the energy to the totals,
+    in visit order.
+    """
     v, ang, inv_mass, radius = bodies
     normal, rest = pairs.normal, pairs.restitution
     struck, warm, warmed = marks.struck, marks.warm_change, marks.warmed
@@ -451,85 +461,163 @@ def _sweep_pairs(bodies, marks, pairs, impulses, settings, losses):
         settings.accumulate
     resting = impulses.resting
     allowance, ahead = pairs.allowance, pairs.ahead
-    applied = False
-    for k in pairs.order:
-        a, b = pairs.first[k], pairs.second[k]
-        nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
-        # The closing speed is read once: it decides both whether the pair
-        # gets an impulse and, against the threshold, its e.
-        approach = -dot3(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2], nx, ny, nz)
-        slack = approach - allowance[k]
-        if slack > tolerance:
-            if ahead[k] and impulses.impact[k] and not settings.early_impacts:
-                # An impact found before it touches: taken when it does, at its
-                # time of impact by the swept stage.
-                continue
-            e = rest[k]
-            if settings.use_threshold:
-                if not (approach >= threshold and (impulses.impact[k] or struck[a]
-                                                   or struck[b])):
-                    e = 0.0
-            bounce = approach
-            if accumulate and e > 0.0 and (warmed[a] or warmed[b]):
-                # A bounce reflects the closing speed the impacts made, never
-                # what the warm pushes added to it: with e = 1 that excess
-                # would leave at full speed and add energy.
-                bounce = min(approach, max(approach + dot3(
-                    warm[a, 0] - warm[b, 0], warm[a, 1] - warm[b, 1],
-                    warm[a, 2] - warm[b, 2], nx, ny, nz), 0.0))
-            if e == 0.0 and allowance[k] > 0.0:
-                # Speculative: close by the gap in the next step, no more.
-                magnitude = slack / (inv_mass[a] + inv_mass[b])
-                removed = push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
-            elif bounce < approach:
-                magnitude = (approach + e * bounce) / (inv_mass[a] + inv_mass[b])
-                removed = push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
-            else:
-                magnitude, removed = apply_pair_normal(v, inv_mass, a, b, nx, ny, nz, e,
-                                                       approach)
-            if settings.use_threshold and e > 0.0 and bounce >= settings.strike_factor * threshold:
-                # A static particle never moves, so it passes no shock on.
-                struck[a] = marks.dynamic[a]
-                struck[b] = marks.dynamic[b]
-            impulses.hit[k] = True
-            if accumulate:
-                # Closing faster than the threshold: an impact's impulse, never
-                # taken back or cached; slower: resting.
-                if impulses.impact[k] or e > 0.0:
-                    impulses.impact_total[k] += magnitude
-                else:
-                    resting[k] += magnitude
-        elif accumulate and slack < -tolerance and resting[k] > 0.0:
-            # Opening (beyond its allowance) with resting impulse to give back
-            # (e.g. from the warm start): take back what stops it opening, at
-            # most all of it. Beyond the tolerance only, as an approach: a
-            # converged contact costs a dot product per sweep;
-            # ``_take_back_pairs`` takes back what is left below it after the
-            # sweeps.
-            magnitude = max(slack / (inv_mass[a] + inv_mass[b]), -resting[k])
+    a, b = pairs.first[k], pairs.second[k]
+    nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
+    # The closing speed is read once: it decides both whether the pair
+    # gets an impulse and, against the threshold, its e.
+    approach = -dot3(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2], nx, ny, nz)
+    slack = approach - allowance[k]
+    if slack > tolerance:
+        if ahead[k] and impulses.impact[k] and not settings.early_impacts:
+            # An impact found before it touches: taken when it does, at its
+            # time of impact by the swept stage.
+            return False, 0.0, 0.0
+        e = rest[k]
+        if settings.use_threshold:
+            if not (approach >= threshold and (impulses.impact[k] or struck[a]
+                                               or struck[b])):
+                e = 0.0
+        bounce = approach
+        if accumulate and e > 0.0 and (warmed[a] or warmed[b]):
+            # A bounce reflects the closing speed the impacts made, never
+            # what the warm pushes added to it: with e = 1 that excess
+            # would leave at full speed and add energy.
+            bounce = min(approach, max(approach + dot3(
+                warm[a, 0] - warm[b, 0], warm[a, 1] - warm[b, 1],
+                warm[a, 2] - warm[b, 2], nx, ny, nz), 0.0))
+        if e == 0.0 and allowance[k] > 0.0:
+            # Speculative: close by the gap in the next step, no more.
+            magnitude = slack / (inv_mass[a] + inv_mass[b])
             removed = push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
-            resting[k] += magnitude
+        elif bounce < approach:
+            magnitude = (approach + e * bounce) / (inv_mass[a] + inv_mass[b])
+            removed = push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
         else:
-            continue
-        applied = True
-        book_pair_loss(losses.per_particle, RESTITUTION, a, b, removed, pairs.share[k])
-        losses.totals[RESTITUTION] += removed
-        impulses.normal[k] += magnitude
-        if settings.friction:
-            spins = (marks.spin[a], marks.spin[b])
-            if accumulate:
-                tangential, lost = friction_accumulated(
-                    v, ang, inv_mass, radius, (a, b), (nx, ny, nz),
-                    resting[k] + impulses.impact_total[k], pairs.friction[k], settings.planar,
-                    spins, impulses.resting_tangential, k)
+            magnitude, removed = apply_pair_normal(v, inv_mass, a, b, nx, ny, nz, e,
+                                                   approach)
+        if settings.use_threshold and e > 0.0 and bounce >= settings.strike_factor * threshold:
+            # A static particle never moves, so it passes no shock on.
+            struck[a] = marks.dynamic[a]
+            struck[b] = marks.dynamic[b]
+        impulses.hit[k] = True
+        if accumulate:
+            # Closing faster than the threshold: an impact's impulse, never
+            # taken back or cached; slower: resting.
+            if impulses.impact[k] or e > 0.0:
+                impulses.impact_total[k] += magnitude
             else:
-                tangential, lost = pair_friction_spun(v, ang, inv_mass, radius, a, b,
-                                                      (nx, ny, nz), magnitude, pairs.friction[k],
-                                                      settings.planar, spins)
-            book_pair_loss(losses.per_particle, FRICTION, a, b, lost, pairs.share[k])
-            losses.totals[FRICTION] += lost
-            impulses.tangential[k] += tangential
+                resting[k] += magnitude
+    elif accumulate and slack < -tolerance and resting[k] > 0.0:
+        # Opening (beyond its allowance) with resting impulse to give back
+        # (e.g. from the warm start): take back what stops it opening, at
+        # most all of it. Beyond the tolerance only, as an approach: a
+        # converged contact costs a dot product per sweep;
+        # ``_take_back_pairs`` takes back what is left below it after the
+        # sweeps.
+        magnitude = max(slack / (inv_mass[a] + inv_mass[b]), -resting[k])
+        removed = push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
+        resting[k] += magnitude
+    else:
+        return False, 0.0, 0.0
+    book_pair_loss(per_particle, RESTITUTION, a, b, removed, pairs.share[k])
+    impulses.normal[k] += magnitude
+    lost = 0.0
+    if settings.friction:
+        spins = (marks.spin[a], marks.spin[b])
+        if accumulate:
+            tangential, lost = friction_accumulated(
+                v, ang, inv_mass, radius, (a, b), (nx, ny, nz),
+                resting[k] + impulses.impact_total[k], pairs.friction[k], settings.planar,
+                spins, impulses.resting_tangential, k)
+        else:
+            tangential, lost = pair_friction_spun(v, ang, inv_mass, radius, a, b,
+                                                  (nx, ny, nz), magnitude, pairs.friction[k],
+                                                  settings.planar, spins)
+        book_pair_loss(per_particle, FRICTION, a, b, lost, pairs.share[k])
+        impulses.tangential[k] += tangential
+    return True, removed, lost
+
+
+@njit(cache=True)
+def _sweep_pairs(bodies, marks, pairs, impulses, settings, losses):
+    """Visit every pair once in visit order (one Gauss-Seidel sweep); return whether any did.
+
+    With colours on several threads, colour by colour (``_sweep_colours``).
+    """
+    if settings.threads > 1 and pairs.colour_start.size > 1:
+        return _sweep_colours(bodies, marks, pairs, impulses, settings, losses)
+    return _visit_in_order(bodies, marks, pairs, impulses, settings, losses, 0,
+                           pairs.order.size)
+
+
+@njit(cache=True)
+def _visit_in_order(bodies, marks, pairs, impulses, settings, losses, start, stop):
+    """Visit pairs order[start] .. order[stop - 1] one after another; return whether any did."""
+    totals, per_particle = losses.totals, losses.per_particle
+    applied = False
+    for q in range(start, stop):
+        did, removed, lost = _visit_pair(pairs.order[q], bodies, marks, pairs, impulses,
+                                         settings, per_particle)
+        if did:
+            applied = True
+            totals[RESTITUTION] += removed
+            if settings.friction:
+                totals[FRICTION] += lost
     return applied
+
+
+@njit(cache=True)
+def _sweep_colours(bodies, marks, pairs, impulses, settings, losses):
+    """One sweep colour by colour: a colour of PARALLEL_MIN_BATCH pairs or more on the threads.
+
+    The pairs of a colour share no dynamic particle, so visiting them at
+    once changes nothing; their energy is added to the totals afterwards,
+    in visit order. The result is the serial sweep's over the same order,
+    bit for bit, whatever the thread count. Overflow pairs follow, one at a time.
+    """
+    start, m = pairs.colour_start, pairs.order.size
+    visits = (np.zeros(m, dtype=np.bool_), np.zeros(m), np.zeros(m))
+    did, removed, lost = visits
+    applied = False
+    for c in range(start.size - 1):
+        lo, hi = start[c], start[c + 1]
+        if hi - lo < PARALLEL_MIN_BATCH:
+            applied |= _visit_in_order(bodies, marks, pairs, impulses, settings, losses, lo, hi)
+            continue
+        _visit_colour_parallel(bodies, marks, pairs, impulses, settings, losses.per_particle,
+                               lo, hi, visits)
+        for q in range(lo, hi):
+            if did[q]:
+                applied = True
+                losses.totals[RESTITUTION] += removed[q]
+                if settings.friction:
+                    losses.totals[FRICTION] += lost[q]
+    overflow = _visit_in_order(bodies, marks, pairs, impulses, settings, losses,
+                               start[start.size - 1], m)
+    return applied or overflow
+
+
+@njit(cache=True, parallel=True)
+def _visit_colour_parallel(bodies, marks, pairs, impulses, settings, per_particle, lo, hi,
+                           visits):
+    """Visit the pairs order[lo] .. order[hi - 1] of one colour, blocks of them on the threads.
+
+    The blocks call a function that is never inlined: numba's parallel loops
+    lose the stores of inlined code and of NamedTuple fields.
+    """
+    for block in prange((hi - lo + PARALLEL_SOLVE_BLOCK - 1) // PARALLEL_SOLVE_BLOCK):
+        start = lo + block * PARALLEL_SOLVE_BLOCK
+        _visit_block(bodies, marks, pairs, impulses, settings, per_particle, start,
+                     min(start + PARALLEL_SOLVE_BLOCK, hi), visits)
+
+
+@njit(cache=True)
+def _visit_block(bodies, marks, pairs, impulses, settings, per_particle, start, stop, visits):
+    """Visit pairs order[start] .. order[stop - 1]; keep each one's outcome in ``visits``."""
+    did, removed, lost = visits
+    for q in range(start, stop):
+        did[q], removed[q], lost[q] = _visit_pair(pairs.order[q], bodies, marks, pairs,
+                                                  impulses, settings, per_particle)
 
 
 @njit(cache=True)
@@ -675,8 +763,10 @@ def _pair_contacts(bodies, contacts, coefficients, settings):
         for c in range(m):
             ahead[c] = contacts.gap[c] > 0.0
             allowance[c] = closing_allowance(contacts.gap[c], settings.dt)
+    colour_start = contacts.colour_start if settings.colour_order else \
+        np.zeros(0, dtype=np.int64)
     return PairContacts(first, second, contacts.normal, rest, mu, share, order, allowance,
-                        ahead)
+                        ahead, colour_start)
 
 
 @njit(cache=True)
@@ -1101,11 +1191,11 @@ def warm_up() -> None:
     # The whole step's solve: a floor under the pair, both warm-started from a cache.
     position = np.array([[0.0, 1.0, 0.0], [1.9, 1.0, 0.0]])
     ids = np.array([0, 1], dtype=np.int64)
-    contacts = StepContacts(first, second, normal, no_rows, np.array([0.01]))
+    contacts = StepContacts(first, second, normal, no_rows, np.array([0.01]), no_rows)
     floor = WallPlanes(np.zeros(1, dtype=np.int64), np.zeros(1), np.ones(1), np.zeros(1))
     coefficients = Coefficients(none, none, 1.0, 1.0, 1.0)
     settings = SolverSettings(True, 0.1, 1e-4, 10.0, 4, True, True, True, False, 0.01, 1e-3,
-                              0.02, True, 0.0, -0.1, 0.0)
+                              0.02, True, 0.0, -0.1, 0.0, 2)
     cache = WarmStartCache(np.array([1], dtype=np.int64), np.ones(1), np.ones((1, 3)),
                            np.array([3], dtype=np.int64), np.ones(1), np.ones((1, 3)))
     solve_step(tuple(bodies), position, ids, tuple(contacts), tuple(floor),

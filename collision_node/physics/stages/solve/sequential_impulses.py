@@ -47,7 +47,8 @@ from ...law import coloring
 from ...law.primitives import Bodies, FRICTION, RESTITUTION, WALLS
 from ...model.effects import Walls
 from ...model.impacts import record_pairs, record_walls
-from ...model.tunables import RESIDUAL_FRACTION, SPECULATIVE_MARGIN, STRIKE_FACTOR
+from ...model.tunables import (PARALLEL_MIN_ITEMS, RESIDUAL_FRACTION, SPECULATIVE_MARGIN,
+                               STRIKE_FACTOR)
 from ...step.pipeline import Contacts, Stage, StepContext
 from .contact_kernels import (Coefficients, MAX_CACHED_ID, solve_step, SolverSettings,
                               StepContacts, WarmStartCache)
@@ -67,6 +68,20 @@ def solve_order(i: np.ndarray, j: np.ndarray, dynamic: np.ndarray) -> list[np.nd
     """Return the colour batches of the pairs: one per colour, then each overflow pair alone."""
     batches, overflow = coloring.color_pairs(i, j, dynamic, coloring.MAX_COLORS)
     return batches + [overflow[k:k + 1] for k in range(overflow.size)]
+
+
+def colour_order(i: np.ndarray, j: np.ndarray, dynamic: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Return (visit order, colour starts): ``solve_order``'s batches as the kernel takes them.
+
+    Colour c is order[start[c]:start[c + 1]]; the overflow pairs follow the
+    last colour, visited one at a time.
+    """
+    batches, overflow = coloring.color_pairs(i, j, dynamic, coloring.MAX_COLORS)
+    start = np.zeros(len(batches) + 1, dtype=np.int64)
+    start[1:] = np.cumsum([batch.size for batch in batches], dtype=np.int64)
+    order = np.concatenate(batches + [overflow]) if batches else overflow
+    return np.ascontiguousarray(order, dtype=np.int64), start
 
 
 def _own(values: Optional[np.ndarray]) -> np.ndarray:
@@ -200,10 +215,12 @@ class SequentialImpulseStage(Stage):
         # Without spin (no friction) the kernel gets a scratch array it never reads.
         angular = (np.zeros((n, 3)) if spin is None
                    else np.ascontiguousarray(spin, dtype=float))
-        colours = self.visit == 'colours'
-        order = _NO_ROWS
+        # Colour by colour with visit='colours', and in any solve large enough to
+        # share among threads, at every thread count (one result for all).
+        colours = self.visit == 'colours' or i.size >= PARALLEL_MIN_ITEMS
+        order = colour_start = _NO_ROWS
         if colours:
-            order = np.ascontiguousarray(self._visit_order(i, j, state.dynamic), dtype=np.int64)
+            order, colour_start = colour_order(i, j, state.dynamic)
         # Gaps (> 0: found before touching) of the narrowphase's speculative pairs.
         gap = (np.ascontiguousarray(-contacts.penetration, dtype=float) if speculative
                else _NO_VALUES)
@@ -213,7 +230,7 @@ class SequentialImpulseStage(Stage):
             self.warm_start and threshold > 0.0, colours, float(ctx.dt),
             float(threshold * ctx.dt) if speculative else 0.0,
             float(SPECULATIVE_MARGIN) if speculative else 0.0, bool(self.early_impacts),
-            *self._fall(ctx))
+            *self._fall(ctx), int(ctx.threads))
         coefficients = Coefficients(
             _own(state.restitution), _own(state.friction) if friction else _NO_VALUES,
             float(self.restitution),
@@ -225,7 +242,7 @@ class SequentialImpulseStage(Stage):
         result = solve_step(
             tuple(bodies), np.ascontiguousarray(state.position, dtype=float),
             np.ascontiguousarray(state.ids, dtype=np.int64),
-            tuple(StepContacts(i, j, normal, order, gap)),
+            tuple(StepContacts(i, j, normal, order, gap, colour_start)),
             tuple(self._planes(ctx.dimensions)), tuple(coefficients), tuple(settings),
             tuple(self.cache.kept), ctx.losses if ctx.losses is not None else _NO_VALUES)
         self.cache.adopt(result.cache)
@@ -266,13 +283,6 @@ class SequentialImpulseStage(Stage):
             planes = [] if self.walls is None else self.walls.planes(dimensions)
             self._plane_arrays = ((self.walls, dimensions), wall_planes(planes))
         return self._plane_arrays[1]
-
-    def _visit_order(self, i: np.ndarray, j: np.ndarray, dynamic: np.ndarray) -> np.ndarray:
-        """Return the order the kernel visits the pairs in (see ``visit``)."""
-        if self.visit == 'pairs':
-            return np.arange(i.size, dtype=np.int64)
-        batches = solve_order(i, j, dynamic)
-        return np.concatenate(batches) if batches else np.zeros(0, dtype=np.int64)
 
     def describe(self) -> str:
         """Say what the stage does."""

@@ -152,7 +152,7 @@ class SweptContactStage(Stage):
             min_speed, STRIKE_FACTOR * min_speed,
             float(drag.linear) if drag is not None else 0.0,
             float(drag.quadratic) if drag is not None else 0.0, drag is not None,
-            ctx.impacts is not None)
+            ctx.impacts is not None, ctx.threads)
         tally = Tally(np.zeros((LOSS_ROWS, n)), np.zeros(LOSS_ROWS), np.zeros(4, dtype=np.int64))
         if ctx.losses is not None:
             # Booked on top of the step's losses so far, in the order the impacts happen.

@@ -40,14 +40,15 @@ from typing import NamedTuple
 import numpy as np
 
 from ...step import numba_cache  # noqa: F401 (chooses numba's cache directory first)
-from numba import njit  # noqa: E402 (after the cache directory is chosen)
+from numba import njit, prange  # noqa: E402 (after the cache directory is chosen)
 
 from ...law.primitives import (apply_wall_normal, BOOKED, book_loss, book_pair_loss,
                                combined_coefficient, dot3, entering_time, FRICTION,
                                line_of_action, pair_friction, pair_impulse,
                                parabola_sphere_time, RESTITUTION, sphere_contact_time,
                                WALLS)  # noqa: E402
-from ...model.tunables import REACH_MARGIN, SERIES_LIMIT  # noqa: E402
+from ...model.tunables import (PARALLEL_BLOCK_ITEMS, PARALLEL_MIN_ITEMS, REACH_MARGIN,
+                               SERIES_LIMIT)  # noqa: E402
 
 # Row of the loss array (after the law's rows and BOOKED) that holds drag's work.
 DRAG = BOOKED + 1
@@ -107,6 +108,7 @@ class Settings(NamedTuple):
     drag_quadratic: float   # kg/m
     has_drag: bool
     record: bool            # return the impact records
+    threads: int            # threads the first round's predictions and the last move share
 
 
 class Candidates(NamedTuple):
@@ -414,6 +416,14 @@ def _predict_pairs(first, last, use_keys, round_, particles, pairs, clock, keys,
     first_of, second_of, resting, seen = pairs.first, pairs.second, pairs.resting, pairs.seen
     gravity, min_speed, dt = settings.gravity, settings.min_speed, settings.dt
     has_gravity = settings.has_gravity
+    if not use_keys and first == 0 and settings.threads > 1 and last >= PARALLEL_MIN_ITEMS:
+        # Every pair of the first round: the times on the threads, then the
+        # due pairs listed in pair order, as the loop below lists them.
+        _pair_times_parallel(particles, pairs, clock, settings, last, has_resting)
+        for k in range(last):
+            n_pending = _list_if_due(k, pairs.time[k], dt, pairs.time, pairs.listed,
+                                     pairs.pending, n_pending)
+        return n_pending
     for slot in range(first, last):
         k = slot
         if use_keys:
@@ -462,9 +472,9 @@ def _predict_pair(k, particles, pairs, clock, settings, has_resting, n_pending):
 
 
 @njit(cache=True, error_model='numpy', inline='always')
-def _predict_walls(p, particles, clock, box, settings, dimensions, has_gravity, min_speed,
-                   has_resting, resting_wall, n_wall_due):
-    """Predict particle p's wall impacts again; list it if due; return the due count."""
+def _wall_row(p, particles, clock, box, settings, dimensions, has_gravity, min_speed,
+              has_resting, resting_wall):
+    """Write particle p's wall times (an untouched resting contact: inf); return the earliest."""
     wall_time = clock.wall_time
     wall_times(particles.position, particles.velocity, particles.radius, clock.local_time, p,
                box.low, box.high, dimensions, settings.gravity, has_gravity, min_speed,
@@ -476,6 +486,15 @@ def _predict_walls(p, particles, clock, box, settings, dimensions, has_gravity, 
         if wall_time[p, column] < first:
             first = wall_time[p, column]
     clock.first_wall[p] = first
+    return first
+
+
+@njit(cache=True, error_model='numpy', inline='always')
+def _predict_walls(p, particles, clock, box, settings, dimensions, has_gravity, min_speed,
+                   has_resting, resting_wall, n_wall_due):
+    """Predict particle p's wall impacts again; list it if due; return the due count."""
+    first = _wall_row(p, particles, clock, box, settings, dimensions, has_gravity, min_speed,
+                      has_resting, resting_wall)
     if first <= settings.dt and not clock.wall_listed[p]:
         clock.wall_listed[p] = True
         clock.wall_due[n_wall_due] = p
@@ -497,6 +516,15 @@ def _predict_straight(particles, pairs, clock, count, settings):
     pair_t, listed, pending = pairs.time, pairs.listed, pairs.pending
     gravity, dt = settings.gravity, settings.dt
     n_pending = 0
+    if settings.threads > 1 and count >= PARALLEL_MIN_ITEMS:
+        # The times on the threads, then the due pairs listed in pair order.
+        _pair_times_parallel(particles, pairs, clock, settings, count, False)
+        for k in range(count):
+            if pair_t[k] <= dt:
+                listed[k] = True
+                pending[n_pending] = k
+                n_pending += 1
+        return n_pending
     for k in range(count):
         t = pair_time(x, v, radius, local_time, dynamic, first_of[k], second_of[k], gravity,
                       False, 0.0, dt)
@@ -508,6 +536,57 @@ def _predict_straight(particles, pairs, clock, count, settings):
     return n_pending
 
 
+@njit(cache=True, parallel=True)
+def _pair_times_parallel(particles, pairs, clock, settings, count, has_resting):
+    """Write the first ``count`` pairs' times (``_pair_times_in``), blocks of pairs on the threads.
+
+    Each pair's time depends on its own particles only, so the values are
+    the serial loops' whatever thread computes them. The blocks call a
+    function that is never inlined: numba's parallel loops lose the stores
+    of inlined code and of NamedTuple fields.
+    """
+    for block in prange((count + PARALLEL_BLOCK_ITEMS - 1) // PARALLEL_BLOCK_ITEMS):
+        start = block * PARALLEL_BLOCK_ITEMS
+        _pair_times_in(particles, pairs, clock, settings, has_resting, start,
+                       min(start + PARALLEL_BLOCK_ITEMS, count))
+
+
+@njit(cache=True, error_model='numpy')
+def _pair_times_in(particles, pairs, clock, settings, has_resting, start, stop):
+    """Write the times of pairs start .. stop - 1 as the first round predicts them.
+
+    Straight paths without a threshold or resting contact: ``_predict_straight``'s
+    formula; otherwise ``_predict_pairs``' rules (resting pairs not yet touched
+    and pairs out of reach get inf).
+    """
+    x, v, radius, dynamic = particles.position, particles.velocity, particles.radius, \
+        particles.dynamic
+    local_time, touched = clock.local_time, clock.touched
+    first_of, second_of, resting, pair_t = pairs.first, pairs.second, pairs.resting, pairs.time
+    gravity, min_speed, dt = settings.gravity, settings.min_speed, settings.dt
+    if not settings.has_gravity and not min_speed > 0.0 and not has_resting:
+        for k in range(start, stop):
+            pair_t[k] = pair_time(x, v, radius, local_time, dynamic, first_of[k], second_of[k],
+                                  gravity, False, 0.0, dt)
+        return
+    for k in range(start, stop):
+        i, j = first_of[k], second_of[k]
+        if has_resting and resting[k] and not (touched[i] or touched[j]):
+            pair_t[k] = np.inf
+        elif settings.has_gravity:
+            if _out_of_reach(x, v, radius, local_time, dynamic, i, j, gravity, dt):
+                pair_t[k] = np.inf
+            else:
+                pair_t[k] = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, True,
+                                      min_speed, dt)
+        elif min_speed > 0.0:
+            pair_t[k] = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, False,
+                                  min_speed, dt)
+        else:
+            pair_t[k] = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, False, 0.0,
+                                  dt)
+
+
 @njit(cache=True, error_model='numpy')
 def _predict_all_walls(particles, clock, box, settings, has_resting, resting_wall):
     """Predict every dynamic particle's wall impacts (the first round); return the due count.
@@ -517,7 +596,25 @@ def _predict_all_walls(particles, clock, box, settings, has_resting, resting_wal
     """
     dimensions, dt = settings.dimensions, settings.dt
     n_wall_due = 0
-    for p in range(particles.position.shape[0]):
+    n = particles.position.shape[0]
+    if settings.threads > 1 and n >= PARALLEL_MIN_ITEMS:
+        # The rows on the threads, then the due particles listed in index
+        # order, as the loop below lists them.
+        _wall_rows_parallel(particles, clock, box, settings, has_resting, resting_wall)
+        straight = dimensions == 3 and not settings.has_gravity and \
+            not (settings.min_speed > 0.0 or has_resting)
+        for p in range(n):
+            if particles.dynamic[p] and clock.first_wall[p] <= dt:
+                if straight:
+                    # The row of a due particle, as the loop below writes it.
+                    n_wall_due = _predict_walls(p, particles, clock, box, settings, 3, False,
+                                                0.0, False, resting_wall, n_wall_due)
+                elif not clock.wall_listed[p]:
+                    clock.wall_listed[p] = True
+                    clock.wall_due[n_wall_due] = p
+                    n_wall_due += 1
+        return n_wall_due
+    for p in range(n):
         if not particles.dynamic[p]:
             continue
         if settings.has_gravity:
@@ -544,6 +641,42 @@ def _predict_all_walls(particles, clock, box, settings, has_resting, resting_wal
             n_wall_due = _predict_walls(p, particles, clock, box, settings, dimensions, False,
                                         0.0, False, resting_wall, n_wall_due)
     return n_wall_due
+
+
+@njit(cache=True, parallel=True)
+def _wall_rows_parallel(particles, clock, box, settings, has_resting, resting_wall):
+    """Write every dynamic particle's wall times (``_wall_rows_in``), blocks on the threads."""
+    n = particles.position.shape[0]
+    for block in prange((n + PARALLEL_BLOCK_ITEMS - 1) // PARALLEL_BLOCK_ITEMS):
+        start = block * PARALLEL_BLOCK_ITEMS
+        _wall_rows_in(particles, clock, box, settings, has_resting, resting_wall, start,
+                      min(start + PARALLEL_BLOCK_ITEMS, n))
+
+
+@njit(cache=True, error_model='numpy')
+def _wall_rows_in(particles, clock, box, settings, has_resting, resting_wall, start, stop):
+    """Write the wall times of particles start .. stop - 1 as ``_predict_all_walls`` does.
+
+    The earliest time of each (3-D straight paths: that alone, the row is
+    written when it is due), without listing them.
+    """
+    dimensions = settings.dimensions
+    for p in range(start, stop):
+        if not particles.dynamic[p]:
+            continue
+        if settings.has_gravity:
+            _wall_row(p, particles, clock, box, settings, dimensions, True, settings.min_speed,
+                      has_resting, resting_wall)
+        elif settings.min_speed > 0.0 or has_resting:
+            _wall_row(p, particles, clock, box, settings, dimensions, False,
+                      settings.min_speed, has_resting, resting_wall)
+        elif dimensions == 3:
+            clock.first_wall[p] = _first_wall_straight(particles.position, particles.velocity,
+                                                       particles.radius, clock.local_time, p,
+                                                       box.low, box.high, 3)
+        else:
+            _wall_row(p, particles, clock, box, settings, dimensions, False, 0.0, False,
+                      resting_wall)
 
 
 @njit(cache=True, error_model='numpy', inline='always')
@@ -626,6 +759,11 @@ def _advance_all(particles, local_time, when, settings, tally):
     """
     x, v, dynamic, gravity = particles.position, particles.velocity, particles.dynamic, \
         settings.gravity
+    if not settings.has_drag and settings.threads > 1 and x.shape[0] >= PARALLEL_MIN_ITEMS:
+        # Drag-free paths on the threads (drag books its work into one total,
+        # summed in particle order, so it moves them here).
+        _advance_parallel(particles, local_time, when, settings)
+        return
     for p in range(x.shape[0]):
         if not dynamic[p]:
             continue
@@ -634,6 +772,26 @@ def _advance_all(particles, local_time, when, settings, tally):
             local_time[p] = when
             _advance_with_drag(particles, p, tau, settings, tally)
         else:
+            _move(x, v, local_time, p, when, gravity, settings.has_gravity)
+
+
+@njit(cache=True, parallel=True)
+def _advance_parallel(particles, local_time, when, settings):
+    """Move every dynamic particle on its drag-free path to ``when``, blocks on the threads."""
+    n = particles.position.shape[0]
+    for block in prange((n + PARALLEL_BLOCK_ITEMS - 1) // PARALLEL_BLOCK_ITEMS):
+        start = block * PARALLEL_BLOCK_ITEMS
+        _advance_in(particles, local_time, when, settings, start,
+                    min(start + PARALLEL_BLOCK_ITEMS, n))
+
+
+@njit(cache=True, error_model='numpy')
+def _advance_in(particles, local_time, when, settings, start, stop):
+    """Move the dynamic particles start .. stop - 1 on their drag-free paths to ``when``."""
+    x, v, dynamic, gravity = particles.position, particles.velocity, particles.dynamic, \
+        settings.gravity
+    for p in range(start, stop):
+        if dynamic[p]:
             _move(x, v, local_time, p, when, gravity, settings.has_gravity)
 
 
@@ -1299,7 +1457,7 @@ def warm_up() -> None:
         particles = Particles(x.copy(), v.copy(), np.zeros((3, 3)), inv_mass, radius,
                               inv_mass > 0.0)
         settings = Settings(1.0, 3, 32, batched, True, 1.0, not batched, 0.5, gravity,
-                            bool(gravity.any()), 0.1, 1.0, drag, 0.0, drag > 0.0, True)
+                            bool(gravity.any()), 0.1, 1.0, drag, 0.0, drag > 0.0, True, 2)
         candidates = Candidates(first, second, np.zeros(2, dtype=bool),
                                 np.zeros((3, 6), dtype=bool), True)
         escapes = Escapes(x + v * 0.5, np.full(3, 0.5), 9.81, np.zeros(3, dtype=bool),

@@ -1,0 +1,146 @@
+"""Scaling: cost per particle-step and parallel efficiency for 1, 2, ... threads.
+
+``python -m collision_node.bench scaling`` steps the 3-D elastic gas (10 %
+volume fraction, dt = 1/240 s; 10k, 100k and 1M particles), the 3-D pour
+of 10,000 spheres (dt = 1/60 s, pour and settling) and the shipped 2-D
+pile (240 discs) at each thread count, in one process, after warm-up
+steps (the first step loads the compiled code). It prints the wall ns per
+particle-step, the speed-up over one thread and the parallel efficiency
+(speed-up / threads), and whether the final state is bit-identical to the
+one-thread run's (it must be). The memory column is the process's peak
+resident memory while the case ran over what it held before, per
+particle, where the case raised the process's peak (else '-': an earlier,
+larger case set it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import os
+import resource
+import time
+from typing import Callable
+
+import numpy as np
+
+from ..physics.model.scene import parse_scene
+from ..physics.step import threads as thread_count
+from ..physics.step.world import World
+from ..scenarios import pour3d, shipped_pile
+from .throughput import gas_scene
+
+DEFAULT_GAS_COUNTS = (10_000, 100_000, 1_000_000)
+GAS_FRACTION = 0.1
+POUR_COUNT = 10_000
+# Particle-steps timed per gas case (the steps of a count: this over the count, at least 5).
+GAS_WORK = 2e6
+
+
+def _state_digest(world: World) -> str:
+    """Return a short digest of the positions and velocities, bit for bit."""
+    digest = hashlib.sha256(np.ascontiguousarray(world.state.position).tobytes())
+    digest.update(np.ascontiguousarray(world.state.velocity).tobytes())
+    return digest.hexdigest()[:12]
+
+
+def _resident_bytes() -> int:
+    """Return this process's resident memory now, bytes (Linux /proc; 0 elsewhere)."""
+    try:
+        with open('/proc/self/statm') as statm:
+            return int(statm.read().split()[1]) * os.sysconf('SC_PAGE_SIZE')
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
+def _peak_bytes() -> int:
+    """Return this process's peak resident memory so far, bytes."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def time_case(make: Callable[[], object], threads: int, warmup: int, steps: int) -> dict:
+    """Step a fresh world of ``make()`` on ``threads``; return its timing and final digest."""
+    before, peak_before = _resident_bytes(), _peak_bytes()
+    world = World(make(), threads=threads)
+    world.step(warmup)
+    start, cpu_start = time.perf_counter(), time.process_time()
+    world.step(steps)
+    seconds = time.perf_counter() - start
+    cpu = time.process_time() - cpu_start
+    n = len(world.state)
+    return {'threads': threads, 'particles': n, 'steps': steps,
+            'ns': seconds / (steps * n) * 1e9, 'cpu_ns': cpu / (steps * n) * 1e9,
+            'ms': seconds / steps * 1e3, 'digest': _state_digest(world),
+            # Only a case that raised the process's peak can say what it held at its peak.
+            'bytes_per_particle': (_peak_bytes() - before) / n if _peak_bytes() > peak_before
+            else None}
+
+
+def cases(args: argparse.Namespace) -> list[tuple[str, Callable[[], object], int, int]]:
+    """Return (label, scene factory, warm-up steps, timed steps) of every case asked for."""
+    out = []
+    for preset in args.presets:
+        for count in sorted(args.counts):
+            steps = max(5, int(GAS_WORK / count))
+            out.append((f'gas {count:,} ({preset})',
+                        lambda c=count, p=preset: parse_scene(
+                            dict(gas_scene(c, fraction=GAS_FRACTION), accuracy=p), 'gas'),
+                        3, steps))
+    for preset in args.presets:
+        if args.pour_steps:
+            out.append((f'pour {POUR_COUNT:,} ({preset})',
+                        lambda p=preset: pour3d(POUR_COUNT, accuracy=p), 1, args.pour_steps))
+        if args.pile_steps:
+            out.append((f'pile 240 ({preset})', lambda p=preset: shipped_pile(p), 1,
+                        args.pile_steps))
+    return out
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Declare the subcommand's options."""
+    parser.add_argument('--thread-counts', type=int, nargs='+', default=None,
+                        help='thread counts to time (default: 1 up to every core)')
+    parser.add_argument('--counts', type=int, nargs='+', default=list(DEFAULT_GAS_COUNTS),
+                        help='gas particle counts (default: 10000 100000 1000000)')
+    parser.add_argument('--presets', nargs='+', default=['fast', 'balanced'],
+                        help='accuracy presets (default: fast balanced)')
+    parser.add_argument('--pour-steps', type=int, default=240,
+                        help='timed steps of the 3-D pour after its first (default 240; '
+                             '0: no pour)')
+    parser.add_argument('--pile-steps', type=int, default=480,
+                        help='timed steps of the shipped pile after its first (default 480; '
+                             '0: no pile)')
+
+
+def run(args: argparse.Namespace) -> int:
+    """Time every case at every thread count; print the Markdown table."""
+    counts = args.thread_counts or list(range(1, thread_count.available() + 1))
+    for count in counts:
+        thread_count.resolve(count, '--thread-counts')
+    load = os.getloadavg()
+    print(f'Parallel step: {os.cpu_count()} cores, numba pool of {thread_count.available()} '
+          'threads, load average '
+          f'{load[0]:.2f} {load[1]:.2f} {load[2]:.2f}; wall time per particle-step after '
+          'warm-up steps, speed-up and efficiency against 1 thread in the same run')
+    print()
+    print('| case | threads | steps | ms per step | ns per particle-step | '
+          'CPU ns per particle-step | speed-up | efficiency | same state as 1 thread | '
+          'peak memory per particle (B) |')
+    print('|---|---:|---:|---:|---:|---:|---:|---:|---|---:|')
+    identical = True
+    for label, make, warmup, steps in cases(args):
+        base = None
+        for count in counts:
+            row = time_case(make, count, warmup, steps)
+            base = base or row
+            same = row['digest'] == base['digest']
+            identical &= same
+            speedup = base['ns'] / row['ns']
+            memory = row['bytes_per_particle']
+            print(f'| {label} | {count} | {steps} | {row["ms"]:.3f} | {row["ns"]:.1f} '
+                  f'| {row["cpu_ns"]:.1f} | {speedup:.2f}x | {speedup / count:.0%} '
+                  f'| {"yes" if same else "NO"} | {"-" if memory is None else f"{memory:.0f}"} |',
+                  flush=True)
+    print()
+    print(f'numba threading layer: {thread_count.layer()}')
+    return 0 if identical else 1
