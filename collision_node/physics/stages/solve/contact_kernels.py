@@ -446,98 +446,6 @@ def _start_solve(bodies, marks, pairs, walls, pair_impulses, wall_impulses, sett
     return single
 
 
-@njit(cache=True, inline='always')
-def _visit_pair(k, bodies, marks, pairs, impulses, settings, per_particle):
-    """Visit pair k once (Gauss-Seidel); return (applied, energy removed, lost to friction).
-
-    Writes pair k's impulses and its two particles only (velocities, spins,
-    marks, per-particle losses); the caller adds the energy to the totals,
-    in visit order.
-    """
-    v, ang, inv_mass, radius = bodies
-    normal, rest = pairs.normal, pairs.restitution
-    struck, warm, warmed = marks.struck, marks.warm_change, marks.warmed
-    threshold, tolerance, accumulate = settings.threshold, settings.tolerance, \
-        settings.accumulate
-    resting = impulses.resting
-    allowance, ahead = pairs.allowance, pairs.ahead
-    a, b = pairs.first[k], pairs.second[k]
-    nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
-    # The closing speed is read once: it decides both whether the pair
-    # gets an impulse and, against the threshold, its e.
-    approach = -dot3(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2], nx, ny, nz)
-    slack = approach - allowance[k]
-    if slack > tolerance:
-        if ahead[k] and impulses.impact[k] and not settings.early_impacts:
-            # An impact found before it touches: taken when it does, at its
-            # time of impact by the swept stage.
-            return False, 0.0, 0.0
-        e = rest[k]
-        if settings.use_threshold:
-            if not (approach >= threshold and (impulses.impact[k] or struck[a]
-                                               or struck[b])):
-                e = 0.0
-        bounce = approach
-        if accumulate and e > 0.0 and (warmed[a] or warmed[b]):
-            # A bounce reflects the closing speed the impacts made, never
-            # what the warm pushes added to it: with e = 1 that excess
-            # would leave at full speed and add energy.
-            bounce = min(approach, max(approach + dot3(
-                warm[a, 0] - warm[b, 0], warm[a, 1] - warm[b, 1],
-                warm[a, 2] - warm[b, 2], nx, ny, nz), 0.0))
-        if e == 0.0 and allowance[k] > 0.0:
-            # Speculative: close by the gap in the next step, no more.
-            magnitude = slack / (inv_mass[a] + inv_mass[b])
-            removed = push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
-        elif bounce < approach:
-            magnitude = (approach + e * bounce) / (inv_mass[a] + inv_mass[b])
-            removed = push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
-        else:
-            magnitude, removed = apply_pair_normal(v, inv_mass, a, b, nx, ny, nz, e,
-                                                   approach)
-        if settings.use_threshold and e > 0.0 and bounce >= settings.strike_factor * threshold:
-            # A static particle never moves, so it passes no shock on.
-            struck[a] = marks.dynamic[a]
-            struck[b] = marks.dynamic[b]
-        impulses.hit[k] = True
-        if accumulate:
-            # Closing faster than the threshold: an impact's impulse, never
-            # taken back or cached; slower: resting.
-            if impulses.impact[k] or e > 0.0:
-                impulses.impact_total[k] += magnitude
-            else:
-                resting[k] += magnitude
-    elif accumulate and slack < -tolerance and resting[k] > 0.0:
-        # Opening (beyond its allowance) with resting impulse to give back
-        # (e.g. from the warm start): take back what stops it opening, at
-        # most all of it. Beyond the tolerance only, as an approach: a
-        # converged contact costs a dot product per sweep;
-        # ``_take_back_pairs`` takes back what is left below it after the
-        # sweeps.
-        magnitude = max(slack / (inv_mass[a] + inv_mass[b]), -resting[k])
-        removed = push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
-        resting[k] += magnitude
-    else:
-        return False, 0.0, 0.0
-    book_pair_loss(per_particle, RESTITUTION, a, b, removed, pairs.share[k])
-    impulses.normal[k] += magnitude
-    lost = 0.0
-    if settings.friction:
-        spins = (marks.spin[a], marks.spin[b])
-        if accumulate:
-            tangential, lost = friction_accumulated(
-                v, ang, inv_mass, radius, (a, b), (nx, ny, nz),
-                resting[k] + impulses.impact_total[k], pairs.friction[k], settings.planar,
-                spins, impulses.resting_tangential, k)
-        else:
-            tangential, lost = pair_friction_spun(v, ang, inv_mass, radius, a, b,
-                                                  (nx, ny, nz), magnitude, pairs.friction[k],
-                                                  settings.planar, spins)
-        book_pair_loss(per_particle, FRICTION, a, b, lost, pairs.share[k])
-        impulses.tangential[k] += tangential
-    return True, removed, lost
-
-
 @njit(cache=True)
 def _sweep_pairs(bodies, marks, pairs, impulses, settings, losses):
     """Visit every pair once in visit order (one Gauss-Seidel sweep); return whether any did.
@@ -546,24 +454,121 @@ def _sweep_pairs(bodies, marks, pairs, impulses, settings, losses):
     """
     if settings.threads > 1 and pairs.colour_start.size > 1:
         return _sweep_colours(bodies, marks, pairs, impulses, settings, losses)
-    return _visit_in_order(bodies, marks, pairs, impulses, settings, losses, 0,
-                           pairs.order.size)
+    return _visit_range(bodies, marks, pairs, impulses, settings, losses, 0, pairs.order.size,
+                        _no_visits())
 
 
 @njit(cache=True)
-def _visit_in_order(bodies, marks, pairs, impulses, settings, losses, start, stop):
-    """Visit pairs order[start] .. order[stop - 1] one after another; return whether any did."""
-    totals, per_particle = losses.totals, losses.per_particle
+def _visit_range(bodies, marks, pairs, impulses, settings, losses, start, stop, visits):
+    """Visit pairs order[start] .. order[stop - 1] one after another; return whether any did.
+
+    Each visit writes its pair's impulses and its two particles only
+    (velocities, spins, marks, per-particle losses). The energy removed goes
+    to ``losses.totals`` in visit order, or, with ``visits`` (applied,
+    removed, lost to friction: arrays over the visit order) not empty, is
+    kept there per pair for the caller to add in visit order (a colour's
+    blocks on several threads).
+    """
+    v, ang, inv_mass, radius = bodies
+    normal, rest = pairs.normal, pairs.restitution
+    struck, warm, warmed = marks.struck, marks.warm_change, marks.warmed
+    threshold, tolerance, accumulate = settings.threshold, settings.tolerance, \
+        settings.accumulate
+    resting = impulses.resting
+    allowance, ahead = pairs.allowance, pairs.ahead
+    per_particle, totals = losses.per_particle, losses.totals
+    keep = visits[0].size > 0
     applied = False
     for q in range(start, stop):
-        did, removed, lost = _visit_pair(pairs.order[q], bodies, marks, pairs, impulses,
-                                         settings, per_particle)
-        if did:
-            applied = True
+        k = pairs.order[q]
+        a, b = pairs.first[k], pairs.second[k]
+        nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
+        # The closing speed is read once: it decides both whether the pair
+        # gets an impulse and, against the threshold, its e.
+        approach = -dot3(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2], nx, ny, nz)
+        slack = approach - allowance[k]
+        if slack > tolerance:
+            if ahead[k] and impulses.impact[k] and not settings.early_impacts:
+                # An impact found before it touches: taken when it does, at its
+                # time of impact by the swept stage.
+                continue
+            e = rest[k]
+            if settings.use_threshold:
+                if not (approach >= threshold and (impulses.impact[k] or struck[a]
+                                                   or struck[b])):
+                    e = 0.0
+            bounce = approach
+            if accumulate and e > 0.0 and (warmed[a] or warmed[b]):
+                # A bounce reflects the closing speed the impacts made, never
+                # what the warm pushes added to it: with e = 1 that excess
+                # would leave at full speed and add energy.
+                bounce = min(approach, max(approach + dot3(
+                    warm[a, 0] - warm[b, 0], warm[a, 1] - warm[b, 1],
+                    warm[a, 2] - warm[b, 2], nx, ny, nz), 0.0))
+            if e == 0.0 and allowance[k] > 0.0:
+                # Speculative: close by the gap in the next step, no more.
+                magnitude = slack / (inv_mass[a] + inv_mass[b])
+                removed = push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
+            elif bounce < approach:
+                magnitude = (approach + e * bounce) / (inv_mass[a] + inv_mass[b])
+                removed = push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
+            else:
+                magnitude, removed = apply_pair_normal(v, inv_mass, a, b, nx, ny, nz, e,
+                                                       approach)
+            if settings.use_threshold and e > 0.0 and bounce >= settings.strike_factor * threshold:
+                # A static particle never moves, so it passes no shock on.
+                struck[a] = marks.dynamic[a]
+                struck[b] = marks.dynamic[b]
+            impulses.hit[k] = True
+            if accumulate:
+                # Closing faster than the threshold: an impact's impulse, never
+                # taken back or cached; slower: resting.
+                if impulses.impact[k] or e > 0.0:
+                    impulses.impact_total[k] += magnitude
+                else:
+                    resting[k] += magnitude
+        elif accumulate and slack < -tolerance and resting[k] > 0.0:
+            # Opening (beyond its allowance) with resting impulse to give back
+            # (e.g. from the warm start): take back what stops it opening, at
+            # most all of it. Beyond the tolerance only, as an approach: a
+            # converged contact costs a dot product per sweep;
+            # ``_take_back_pairs`` takes back what is left below it after the
+            # sweeps.
+            magnitude = max(slack / (inv_mass[a] + inv_mass[b]), -resting[k])
+            removed = push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
+            resting[k] += magnitude
+        else:
+            continue
+        book_pair_loss(per_particle, RESTITUTION, a, b, removed, pairs.share[k])
+        impulses.normal[k] += magnitude
+        lost = 0.0
+        if settings.friction:
+            spins = (marks.spin[a], marks.spin[b])
+            if accumulate:
+                tangential, lost = friction_accumulated(
+                    v, ang, inv_mass, radius, (a, b), (nx, ny, nz),
+                    resting[k] + impulses.impact_total[k], pairs.friction[k], settings.planar,
+                    spins, impulses.resting_tangential, k)
+            else:
+                tangential, lost = pair_friction_spun(v, ang, inv_mass, radius, a, b,
+                                                      (nx, ny, nz), magnitude, pairs.friction[k],
+                                                      settings.planar, spins)
+            book_pair_loss(per_particle, FRICTION, a, b, lost, pairs.share[k])
+            impulses.tangential[k] += tangential
+        if keep:
+            visits[0][q], visits[1][q], visits[2][q] = True, removed, lost
+        else:
             totals[RESTITUTION] += removed
             if settings.friction:
                 totals[FRICTION] += lost
+        applied = True
     return applied
+
+
+@njit(cache=True, inline='always')
+def _no_visits():
+    """Return empty per-pair outcomes: ``_visit_range`` adds the energy to the totals itself."""
+    return np.zeros(0, dtype=np.bool_), np.zeros(0), np.zeros(0)
 
 
 @njit(cache=True)
@@ -582,24 +587,25 @@ def _sweep_colours(bodies, marks, pairs, impulses, settings, losses):
     for c in range(start.size - 1):
         lo, hi = start[c], start[c + 1]
         if hi - lo < PARALLEL_MIN_BATCH:
-            applied |= _visit_in_order(bodies, marks, pairs, impulses, settings, losses, lo, hi)
+            applied |= _visit_range(bodies, marks, pairs, impulses, settings, losses, lo, hi,
+                                    _no_visits())
             continue
-        _visit_colour_parallel(bodies, marks, pairs, impulses, settings, losses.per_particle,
-                               lo, hi, visits)
+        did[lo:hi] = False
+        _visit_colour_parallel(bodies, marks, pairs, impulses, settings, losses, lo, hi,
+                               visits)
         for q in range(lo, hi):
             if did[q]:
                 applied = True
                 losses.totals[RESTITUTION] += removed[q]
                 if settings.friction:
                     losses.totals[FRICTION] += lost[q]
-    overflow = _visit_in_order(bodies, marks, pairs, impulses, settings, losses,
-                               start[start.size - 1], m)
+    overflow = _visit_range(bodies, marks, pairs, impulses, settings, losses,
+                            start[start.size - 1], m, _no_visits())
     return applied or overflow
 
 
 @njit(cache=True, parallel=True)
-def _visit_colour_parallel(bodies, marks, pairs, impulses, settings, per_particle, lo, hi,
-                           visits):
+def _visit_colour_parallel(bodies, marks, pairs, impulses, settings, losses, lo, hi, visits):
     """Visit the pairs order[lo] .. order[hi - 1] of one colour, blocks of them on the threads.
 
     The blocks call a function that is never inlined: numba's parallel loops
@@ -607,17 +613,8 @@ def _visit_colour_parallel(bodies, marks, pairs, impulses, settings, per_particl
     """
     for block in prange((hi - lo + PARALLEL_SOLVE_BLOCK - 1) // PARALLEL_SOLVE_BLOCK):
         start = lo + block * PARALLEL_SOLVE_BLOCK
-        _visit_block(bodies, marks, pairs, impulses, settings, per_particle, start,
+        _visit_range(bodies, marks, pairs, impulses, settings, losses, start,
                      min(start + PARALLEL_SOLVE_BLOCK, hi), visits)
-
-
-@njit(cache=True)
-def _visit_block(bodies, marks, pairs, impulses, settings, per_particle, start, stop, visits):
-    """Visit pairs order[start] .. order[stop - 1]; keep each one's outcome in ``visits``."""
-    did, removed, lost = visits
-    for q in range(start, stop):
-        did[q], removed[q], lost[q] = _visit_pair(pairs.order[q], bodies, marks, pairs,
-                                                  impulses, settings, per_particle)
 
 
 @njit(cache=True)
