@@ -26,6 +26,7 @@ import numpy as np
 
 from ..physics.model.scene import parse_scene
 from ..physics.step import threads as thread_count
+from ..physics.step.kernels import prepare
 from ..physics.step.world import World
 from ..scenarios import pour3d, shipped_pile
 from .throughput import gas_scene
@@ -117,6 +118,8 @@ def run(args: argparse.Namespace) -> int:
     counts = args.thread_counts or list(range(1, thread_count.available() + 1))
     for count in counts:
         thread_count.resolve(count, '--thread-counts')
+    # Compiled (or loaded) before any case: a first start's compile is no case's time.
+    compile_seconds = prepare()
     load = os.getloadavg()
     print(f'Parallel step: {os.cpu_count()} cores, numba pool of {thread_count.available()} '
           'threads, load average '
@@ -142,5 +145,6 @@ def run(args: argparse.Namespace) -> int:
                   f'| {"yes" if same else "NO"} | {"-" if memory is None else f"{memory:.0f}"} |',
                   flush=True)
     print()
-    print(f'numba threading layer: {thread_count.layer()}')
+    print(f'numba threading layer: {thread_count.layer()}; compiling or loading the kernels '
+          f'before the first case took {compile_seconds:.1f} s')
     return 0 if identical else 1
