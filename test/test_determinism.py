@@ -12,14 +12,12 @@ of the single-thread kernels.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from collision_node import World
@@ -29,7 +27,7 @@ from collision_node.physics.step import threads
 from collision_node.physics.model.validation import SceneError
 from collision_node.scenarios import pour3d
 
-from test_outcome_digest import scene_for
+from test_outcome_digest import scene_for, world_digest
 
 STEPPED = ('fast', 'balanced', 'accurate', 'batched')
 THREAD_COUNTS = (1, 2, 4)
@@ -40,19 +38,6 @@ POUR_COUNT = 6000
 POUR_STEPS = 40
 GAS_COUNT = 20_000
 GAS_STEPS = 5
-
-
-def state_digest(world: World) -> str:
-    """Return a digest of the state's arrays and the collision count, bit for bit."""
-    state = world.state
-    digest = hashlib.sha256()
-    for array in (state.ids, state.position, state.velocity, state.angular_velocity,
-                  state.orientation):
-        if array is not None:
-            digest.update(np.ascontiguousarray(array).tobytes())
-    digest.update(repr((world.steps, world.stats.collisions,
-                        world.stats.wall_collisions)).encode())
-    return digest.hexdigest()[:20]
 
 
 def cases() -> list:
@@ -82,7 +67,7 @@ def child_digests() -> dict:
         for count in THREAD_COUNTS:
             world = World(scene, threads=count)
             world.step(steps)
-            result[label][count] = state_digest(world)
+            result[label][count] = world_digest(world)
     return result
 
 

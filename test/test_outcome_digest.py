@@ -91,6 +91,11 @@ def outcome_digest(name: str, preset: str) -> str | None:
         return None
     world = World(scene)
     world.step(STEPS.get(name, DEFAULT_STEPS))
+    return world_digest(world)
+
+
+def world_digest(world: World) -> str:
+    """Return the digest of a world's state (ids, positions, velocities, spins) and counts."""
     state = world.state
     digest = hashlib.sha256()
     for array in (state.ids, state.position, state.velocity, state.angular_velocity,
