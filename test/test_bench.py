@@ -287,3 +287,27 @@ def test_resting_bench_drop_scene_puts_a_disc_above_a_hollow_of_the_top_row():
     top = max(p['position'][1] for p in particles[:-1])
     assert particles[-1]['position'][1] == pytest.approx(top + 2 * RADIUS + 0.3)
     assert particles[-1]['position'][0] == pytest.approx(26 * RADIUS)
+
+
+def test_scaling_bench_rows_say_each_thread_count_gave_the_same_state(capsys):
+    """One row per case and thread count; the state column checks the count changed nothing."""
+    assert bench.main(['scaling', '--counts', '5000', '--presets', 'fast', '--pour-steps', '0',
+                       '--pile-steps', '2', '--thread-counts', '1', '1']) == 0
+    lines = capsys.readouterr().out.splitlines()
+    table = [line for line in lines if line.startswith('|')]
+    assert table[0].startswith('| case | threads | steps | ms per step')
+    rows = [[cell.strip() for cell in line.strip('|').split('|')] for line in table[2:]]
+    assert [(row[0], row[1]) for row in rows] == [
+        ('gas 5,000 (fast)', '1'), ('gas 5,000 (fast)', '1'),
+        ('pile 240 (fast)', '1'), ('pile 240 (fast)', '1')]
+    assert all(row[8] == 'yes' for row in rows)
+    # Each case's first row is its own base.
+    assert (rows[0][6], rows[0][7], rows[2][6], rows[2][7]) == ('1.00x', '100%', '1.00x', '100%')
+    assert any(line.startswith('numba threading layer:') for line in lines)
+
+
+def test_scaling_bench_refuses_a_thread_count_over_the_pool(capsys):
+    assert bench.main(['scaling', '--counts', '5000', '--pour-steps', '0', '--pile-steps', '0',
+                       '--thread-counts', '1000']) == 2
+    assert 'bench scaling: --thread-counts: 1000 threads asked for, but this process can run ' \
+        'at most' in capsys.readouterr().err

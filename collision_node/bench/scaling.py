@@ -19,12 +19,14 @@ import argparse
 import hashlib
 import os
 import resource
+import sys
 import time
 from typing import Callable
 
 import numpy as np
 
 from ..physics.model.scene import parse_scene
+from ..physics.model.validation import SceneError
 from ..physics.step import threads as thread_count
 from ..physics.step.kernels import prepare
 from ..physics.step.world import World
@@ -116,8 +118,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Time every case at every thread count; print the Markdown table."""
     counts = args.thread_counts or list(range(1, thread_count.available() + 1))
-    for count in counts:
-        thread_count.resolve(count, '--thread-counts')
+    try:
+        for count in counts:
+            thread_count.resolve(count, '--thread-counts')
+    except SceneError as error:
+        print(f'bench scaling: {error}', file=sys.stderr)
+        return 2
     # Compiled (or loaded) before any case: a first start's compile is no case's time.
     compile_seconds = prepare()
     load = os.getloadavg()
