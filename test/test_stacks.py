@@ -54,8 +54,9 @@ def gap(reason: str):
     return pytest.mark.xfail(strict=True, reason=reason)
 
 
-PYRAMID_GAP = gap('the pyramid spreads sideways while the sweeps build the bottom row\'s '
-                  'horizontal thrust (measured 0.06 to 0.14 r under fast and balanced)')
+PYRAMID_GAP = gap('from a cold start fast\'s 8 sweeps a step build the rows\' thrust too '
+                  'slowly: the pyramid gives way for 5 steps (measured 0.011 r with mu = 0.5, '
+                  '0.069 r without; 32 sweeps keep it to 0.007 r)')
 
 
 def deepest_overlap(world: World) -> float:
@@ -100,7 +101,7 @@ def test_column_of_20_spheres_keeps_its_top_within_1pct_r_for_10_s(preset, radiu
 
 # exact refuses friction, so it runs the frictionless pyramid only.
 PYRAMIDS = [pytest.param(preset, friction, id=f'{preset}-{label}',
-                         marks=[PYRAMID_GAP] if preset in ('fast', 'balanced') else [])
+                         marks=[PYRAMID_GAP] if preset == 'fast' else [])
             for preset in STEPPED + ('exact',)
             for friction, label in ((0.5, 'mu0.5'), (None, 'frictionless'))
             if preset != 'exact' or friction is None]
@@ -111,7 +112,9 @@ POUR2D = [pytest.param('fast', marks=gap('deepest overlap above 1 % of r')),
 POUR3D = [pytest.param(preset, marks=gap('deepest overlap above 1 % of r in a box 5 spheres '
                                          'wide'))
           for preset in ('fast', 'balanced')] + [pytest.param('accurate')]
-DROP_ON_PILE = list(STEPPED)
+DROP_ON_PILE = [pytest.param('fast', marks=gap('deepest overlap above 1 % of r after the '
+                                               'drop (measured 0.015 r)')),
+                'balanced', 'accurate']
 
 
 @pytest.mark.parametrize('preset, friction', PYRAMIDS)

@@ -14,7 +14,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from collision_node.physics.model.effects import Walls
-from collision_node.physics.model.tunables import STACK_ALIGNMENT, SUPPORT_SLOP
+from collision_node.physics.model.tunables import (STACK_ALIGNMENT, SUPPORT_SLOP, SUPPORT_SWEEPS,
+                                                   SUPPORT_TOLERANCE)
 from collision_node.physics.stages.correction.separation import SeparationStage
 from collision_node.physics.stages.detection.narrowphase import line_of_action
 from collision_node.physics.step.pipeline import StepContext
@@ -162,48 +163,100 @@ class SeparationOracle(SeparationStage):
 
     def _project_in_turn(self, ctx: StepContext, has_pairs: bool, passes: int,
                          held_by: Optional[Walls]) -> None:
-        """Gauss-Seidel passes: pair after pair from the positions as they are, then walls."""
+        """Gauss-Seidel passes a support level at a time, then walls (see the kernel)."""
         s, c = ctx.state, ctx.contacts
-        count = len(c) if has_pairs else 0
         i, j = (c.i, c.j) if has_pairs else (np.zeros(0, np.int64), np.zeros(0, np.int64))
         level = support_levels(s.position, s.radius, s.dynamic, i, j, self.walls,
                                np.asarray(ctx.effects.gravity, dtype=float), ctx.dimensions)
-        order = np.argsort(np.minimum(level[i], level[j]), kind='stable')
+        key = np.minimum(level[i], level[j])
+        order = np.argsort(key, kind='stable')
         g = np.asarray(ctx.effects.gravity, dtype=float)
         up = -g / np.linalg.norm(g)
         for _ in range(passes):
             overlapped = False
-            for k in order[:count]:
-                a, b = c.i[k:k + 1], c.j[k:k + 1]
-                normal, distance = line_of_action(s.position[a] - s.position[b],
-                                                  s.velocity[a] - s.velocity[b])
-                depth = s.radius[a] + s.radius[b] - distance
-                if not depth[0] > 0.0:
+            for block in np.split(order, np.flatnonzero(np.diff(key[order])) + 1):
+                if not block.size:
                     continue
-                overlapped = True
-                w_a, w_b = s.inv_mass[a].copy(), s.inv_mass[b].copy()
-                upright = abs(float(normal[0] @ up)) >= STACK_ALIGNMENT
-                walls = self.walls
-
-                def into_wall(rows, way):
-                    return walls is not None and bool(held_by_walls(
-                        s.position[rows] + depth[:, None] * way, s.radius[rows], way, walls,
-                        ctx.dimensions)[0])
-
-                if not upright:
-                    pass
-                elif level[a[0]] < level[b[0]] and w_b[0] > 0.0 and not into_wall(b, -normal):
-                    w_a[:] = 0.0
-                elif level[b[0]] < level[a[0]] and w_a[0] > 0.0 and not into_wall(a, normal):
-                    w_b[:] = 0.0
-                w_sum = w_a + w_b
-                if not w_sum[0] > 0.0:
-                    continue
-                s.position[a] += (depth * w_a / w_sum)[:, None] * normal
-                s.position[b] += -((depth * w_b / w_sum)[:, None] * normal)
+                movers = [self._mover(ctx, c.i[k], c.j[k], level, up) for k in block]
+                lifted = set()
+                for k, mover in zip(block, movers):
+                    if mover is not None and mover >= 0:
+                        overlapped = True
+                        if mover not in lifted:
+                            lifted.add(mover)
+                            group = [kk for kk, mm in zip(block, movers) if mm == mover]
+                            self._lift_off_supports(s, mover, group, c)
+                        continue
+                    overlapped = self._push(ctx, c.i[k], c.j[k], level, up) or overlapped
             self._clamp_inside_walls(ctx)
             if not overlapped:
                 break
+
+    def _mover(self, ctx: StepContext, a: int, b: int, level: np.ndarray,
+               up: np.ndarray) -> Optional[int]:
+        """Return the pair's lone mover, -1 if it shares its push, None if it does not overlap."""
+        s = ctx.state
+        normal, distance = line_of_action(s.position[[a]] - s.position[[b]],
+                                          s.velocity[[a]] - s.velocity[[b]])
+        depth = s.radius[a] + s.radius[b] - distance[0]
+        if not depth > 0.0:
+            return None
+        walls = self.walls
+
+        def into_wall(row, way):
+            return walls is not None and bool(held_by_walls(
+                s.position[[row]] + depth * way, s.radius[[row]], way, walls,
+                ctx.dimensions)[0])
+
+        if abs(float(normal[0] @ up)) < STACK_ALIGNMENT:
+            return -1
+        if level[a] < level[b] and s.inv_mass[b] > 0.0 and not into_wall(b, -normal):
+            return int(b)
+        if level[b] < level[a] and s.inv_mass[a] > 0.0 and not into_wall(a, normal):
+            return int(a)
+        return -1
+
+    @staticmethod
+    def _lift_off_supports(s, p: int, group: list, c) -> None:
+        """Projected Gauss-Seidel on the mover's pushes out of its supports (see the kernel)."""
+        lifted = [0.0] * len(group)
+        for _ in range(SUPPORT_SWEEPS):
+            converged = True
+            for t, k in enumerate(group):
+                q = c.j[k] if c.i[k] == p else c.i[k]
+                normal, distance = line_of_action(s.position[[p]] - s.position[[q]],
+                                                  s.velocity[[p]] - s.velocity[[q]])
+                push = max(lifted[t] + s.radius[p] + s.radius[q] - distance[0], 0.0)
+                change = push - lifted[t]
+                if change == 0.0:
+                    continue
+                lifted[t] = push
+                s.position[p] += change * normal[0]
+                if abs(change) > SUPPORT_TOLERANCE * s.radius[p]:
+                    converged = False
+            if converged:
+                break
+
+    def _push(self, ctx: StepContext, a: int, b: int, level: np.ndarray,
+              up: np.ndarray) -> bool:
+        """Push an overlapping pair apart in turn; return whether it overlapped."""
+        s = ctx.state
+        normal, distance = line_of_action(s.position[[a]] - s.position[[b]],
+                                          s.velocity[[a]] - s.velocity[[b]])
+        depth = s.radius[a] + s.radius[b] - distance[0]
+        if not depth > 0.0:
+            return False
+        w_a, w_b = s.inv_mass[a], s.inv_mass[b]
+        alone = self._mover(ctx, a, b, level, up)
+        if alone == a:
+            w_b = 0.0
+        elif alone == b:
+            w_a = 0.0
+        w_sum = w_a + w_b
+        if w_sum > 0.0:
+            s.position[a] += (depth * w_a / w_sum) * normal[0]
+            s.position[b] += -((depth * w_b / w_sum) * normal[0])
+        return True
 
     def _clamp_inside_walls(self, ctx: StepContext) -> None:
         """Place particles found past a wall plane back on it."""

@@ -89,6 +89,17 @@ SUPPORT_SLOP = 0.01
 # deeper (docs/stability.md, "Dense contact").
 STACK_ALIGNMENT = 0.5
 
+# Sweeps, at most, that separation spends lifting each particle out of all
+# the supports it stands on at once (a disc in a groove rises straight up
+# instead of walking sideways). Each sweep shrinks the error by the squared
+# cosine between two supports' normals: 1/4 in a hexagonal groove, so 16
+# sweeps leave 2e-10 of the lift. More only costs time where supports are
+# nearly parallel.
+SUPPORT_SWEEPS = 16
+
+# Of r: those sweeps stop once no push changes by more than this.
+SUPPORT_TOLERANCE = 1e-9
+
 # --- Broadphase (stages/detection) ---------------------------------------------------------------
 
 # Reaches within one size class differ by less than this factor: the

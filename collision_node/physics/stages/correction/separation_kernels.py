@@ -21,7 +21,8 @@ from ...law.primitives import dot3, line_of_action  # noqa: E402
 from ...step.step_kernels import (ParticleArrays, spread_levels, union_root,  # noqa: E402
                                   UNSUPPORTED)
 from ..detection.narrowphase_kernels import ContactArrays  # noqa: E402
-from ...model.tunables import STACK_ALIGNMENT, SUPPORT_SLOP  # noqa: E402
+from ...model.tunables import (STACK_ALIGNMENT, SUPPORT_SLOP, SUPPORT_SWEEPS,  # noqa: E402
+                               SUPPORT_TOLERANCE)
 
 
 class WallBounds(NamedTuple):
@@ -154,54 +155,164 @@ def support_order(contacts, level):
 
 
 @njit(cache=True)
-def _separate_in_turn(particles, contacts, order, level, walls, up):
-    """One Gauss-Seidel projection pass: each pair in ``order``, from the positions as they are.
+def _mover(particles, a, b, nx, ny, nz, depth, level, walls, up):
+    """Return which of pair (a, b) moves alone out of its overlap, or -1 if they share it.
 
-    Each overlapping pair is pushed apart along its current line of action
-    by its overlap. Of two dynamic particles at different support levels, one
-    above the other (the line of action within STACK_ALIGNMENT of ``up``), the
-    one nearer a support holds and the other takes the whole push (a lift
-    from the support, paid for by ``pay_for_lift``), unless that push would
-    take it into a wall (then they share it); at one level, and in a
-    cluster no wall or static particle supports, the push is shared by
-    inverse mass, m_a dx_a = -m_b dx_b: the centre of mass stays, so no pass
-    lifts an unsupported cluster. Returns whether any pair overlapped.
+    Of two dynamic particles at different support levels, one above the
+    other (the line of action ``N``, from b to a, within STACK_ALIGNMENT of
+    ``up``), the one farther from a support moves alone, unless its push by
+    ``depth`` would take it into a wall (the clamp would put it back and
+    leave the overlap).
+    """
+    inv_mass = particles.inv_mass
+    if abs(dot3(nx, ny, nz, up[0], up[1], up[2])) < STACK_ALIGNMENT:
+        return -1
+    if level[a] < level[b] and inv_mass[b] > 0.0 and not (walls.present and _held(
+            particles, b, (-depth * nx, -depth * ny, -depth * nz), (-nx, -ny, -nz), walls)):
+        return b
+    if level[b] < level[a] and inv_mass[a] > 0.0 and not (walls.present and _held(
+            particles, a, (depth * nx, depth * ny, depth * nz), (nx, ny, nz), walls)):
+        return a
+    return -1
+
+
+@njit(cache=True)
+def _lift_off_supports(particles, contacts, order, p, group, lifted):
+    """Project one lone mover out of all its supports at once.
+
+    ``group`` lists the positions in ``order`` of the pairs in which the
+    mover ``p`` stands on a support one level lower (which holds), so the
+    constraints are the mover's own: projected Gauss-Seidel on the pushes
+    (``lifted``, one per pair of the group, >= 0) finds the smallest move
+    that leaves none of them overlapping. A disc sunk into a groove rises
+    straight up; pushing it out of one support after the other (never back)
+    would walk it sideways every step.
+    """
+    position, velocity, radius = particles.position, particles.velocity, particles.radius
+    pair_first, pair_second = contacts.first, contacts.second
+    for t in range(group.size):
+        lifted[t] = 0.0
+    for _ in range(SUPPORT_SWEEPS):
+        converged = True
+        for t in range(group.size):
+            k = order[group[t]]
+            a, b = pair_first[k], pair_second[k]
+            q = b if a == p else a
+            nx, ny, nz, distance = line_of_action(
+                position[p, 0] - position[q, 0], position[p, 1] - position[q, 1],
+                position[p, 2] - position[q, 2], velocity[p, 0] - velocity[q, 0],
+                velocity[p, 1] - velocity[q, 1], velocity[p, 2] - velocity[q, 2])
+            push = max(lifted[t] + radius[p] + radius[q] - distance, 0.0)
+            change = push - lifted[t]
+            if change == 0.0:
+                continue
+            lifted[t] = push
+            position[p, 0] += change * nx
+            position[p, 1] += change * ny
+            position[p, 2] += change * nz
+            if abs(change) > SUPPORT_TOLERANCE * radius[p]:
+                converged = False
+        if converged:
+            break
+
+
+@njit(cache=True)
+def _separate_in_turn(particles, contacts, order, level, walls, up):
+    """One Gauss-Seidel projection pass over the pairs, a support level at a time.
+
+    The pairs come nearest a support first (``order``, by the lower level of
+    the two) and are visited in turn from the positions as they are. Where
+    a particle stands on others one level lower (the line of action within
+    STACK_ALIGNMENT of ``up``), it is lifted out of all those supports
+    together at its first such pair (``_lift_off_supports``: a lift paid for
+    by ``pay_for_lift``); the other overlapping pairs (side contacts, one
+    level, a cluster no wall or static particle supports, a lift that would
+    go into a wall) are pushed apart by inverse mass, m_a dx_a = -m_b dx_b,
+    which keeps the centre of mass, so no pass lifts an unsupported cluster.
+    Returns whether any pair overlapped.
     """
     position, velocity, radius = particles.position, particles.velocity, particles.radius
     inv_mass = particles.inv_mass
     pair_first, pair_second = contacts.first, contacts.second
+    m = order.size
+    mover = np.empty(m, dtype=np.int64)
+    by_mover = np.empty(m, dtype=np.int64)
+    lifted = np.empty(m)
+    # Where each mover's pairs of the current level start and end in by_mover.
+    group_start = np.empty(position.shape[0], dtype=np.int64)
+    group_end = np.empty(position.shape[0], dtype=np.int64)
+    lifted_in = np.full(position.shape[0], -1, dtype=np.int64)
     any_overlap = False
-    for k in order:
-        a, b = pair_first[k], pair_second[k]
-        nx, ny, nz, distance = line_of_action(
-            position[a, 0] - position[b, 0], position[a, 1] - position[b, 1],
-            position[a, 2] - position[b, 2], velocity[a, 0] - velocity[b, 0],
-            velocity[a, 1] - velocity[b, 1], velocity[a, 2] - velocity[b, 2])
-        depth = radius[a] + radius[b] - distance
-        if not depth > 0.0:
-            continue
-        any_overlap = True
-        w_a, w_b = inv_mass[a], inv_mass[b]
-        # The one farther from a support moves alone, unless that takes it into a wall
-        # (the clamp would put it back and leave the overlap): then they share.
-        if abs(dot3(nx, ny, nz, up[0], up[1], up[2])) < STACK_ALIGNMENT:
-            pass
-        elif level[a] < level[b] and w_b > 0.0 and not (walls.present and _held(
-                particles, b, (-depth * nx, -depth * ny, -depth * nz), (-nx, -ny, -nz), walls)):
-            w_a = 0.0
-        elif level[b] < level[a] and w_a > 0.0 and not (walls.present and _held(
-                particles, a, (depth * nx, depth * ny, depth * nz), (nx, ny, nz), walls)):
-            w_b = 0.0
-        w_sum = w_a + w_b
-        if not w_sum > 0.0:
-            continue
-        push_a, push_b = depth * w_a / w_sum, depth * w_b / w_sum
-        position[a, 0] += push_a * nx
-        position[a, 1] += push_a * ny
-        position[a, 2] += push_a * nz
-        position[b, 0] += -(push_b * nx)
-        position[b, 1] += -(push_b * ny)
-        position[b, 2] += -(push_b * nz)
+    start = 0
+    while start < m:
+        key = min(level[pair_first[order[start]]], level[pair_second[order[start]]])
+        end = start + 1
+        while end < m and min(level[pair_first[order[end]]],
+                              level[pair_second[order[end]]]) == key:
+            end += 1
+        lone = False
+        for t in range(start, end):
+            k = order[t]
+            a, b = pair_first[k], pair_second[k]
+            nx, ny, nz, distance = line_of_action(
+                position[a, 0] - position[b, 0], position[a, 1] - position[b, 1],
+                position[a, 2] - position[b, 2], velocity[a, 0] - velocity[b, 0],
+                velocity[a, 1] - velocity[b, 1], velocity[a, 2] - velocity[b, 2])
+            depth = radius[a] + radius[b] - distance
+            mover[t] = -1
+            if depth > 0.0:
+                mover[t] = _mover(particles, a, b, nx, ny, nz, depth, level, walls, up)
+                lone = lone or mover[t] >= 0
+        if lone:
+            # Each mover's pairs of this level, together (stable: in visit order).
+            sorted_rows = np.argsort(mover[start:end], kind='mergesort')
+            for s in range(end - start):
+                t = start + sorted_rows[s]
+                by_mover[start + s] = t
+                p = mover[t]
+                if p >= 0:
+                    if s == 0 or mover[by_mover[start + s - 1]] != p:
+                        group_start[p] = start + s
+                    group_end[p] = start + s + 1
+        for t in range(start, end):
+            p = mover[t]
+            if p >= 0:
+                any_overlap = True
+                if lifted_in[p] == start:
+                    continue
+                lifted_in[p] = start
+                _lift_off_supports(particles, contacts, order, p,
+                                   by_mover[group_start[p]:group_end[p]], lifted)
+                continue
+            k = order[t]
+            a, b = pair_first[k], pair_second[k]
+            nx, ny, nz, distance = line_of_action(
+                position[a, 0] - position[b, 0], position[a, 1] - position[b, 1],
+                position[a, 2] - position[b, 2], velocity[a, 0] - velocity[b, 0],
+                velocity[a, 1] - velocity[b, 1], velocity[a, 2] - velocity[b, 2])
+            depth = radius[a] + radius[b] - distance
+            if not depth > 0.0:
+                continue
+            any_overlap = True
+            w_a, w_b = inv_mass[a], inv_mass[b]
+            # Overlapping only since this level's earlier pushes: one above the
+            # other, the one nearer a support still holds.
+            alone = _mover(particles, a, b, nx, ny, nz, depth, level, walls, up)
+            if alone == a:
+                w_b = 0.0
+            elif alone == b:
+                w_a = 0.0
+            w_sum = w_a + w_b
+            if not w_sum > 0.0:
+                continue
+            push_a, push_b = depth * w_a / w_sum, depth * w_b / w_sum
+            position[a, 0] += push_a * nx
+            position[a, 1] += push_a * ny
+            position[a, 2] += push_a * nz
+            position[b, 0] += -(push_b * nx)
+            position[b, 1] += -(push_b * ny)
+            position[b, 2] += -(push_b * nz)
+        start = end
     return any_overlap
 
 
