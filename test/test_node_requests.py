@@ -23,7 +23,7 @@ from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
 
 from collision_node.physics.model.guard import MAX_TEXT_BYTES
-from collision_node.ros.qos import SERVICE_QOS
+from collision_node.ros.qos import SERVICE_QOS, STATUS_QOS
 from msg_adapters import state_from_point_cloud
 from msg_adapters.strings import string_bytes
 from node_harness import executable, NodeUnderTest, ros_env, unique_domain_id
@@ -301,22 +301,29 @@ def test_clock_never_runs_ahead_of_wall_time_at_a_high_publish_rate():
     running = NodeUnderTest(['-p', 'publish_rate:=1000.0'])
     try:
         samples = []
-        # A kHz reader subscribes best effort (what sensor-data readers do): a
-        # reliable Python reader that falls behind a 1 kHz reliable writer can
-        # stall in Fast DDS (ros2/rclcpp#755), which says nothing about the clock.
+        # A kHz reader subscribes best effort (what sensor-data readers do). Its
+        # stream may still pause when this process is starved: Fast DDS's shared
+        # memory transport gives up on a reader that does not drain its port in
+        # time. So /clock is checked over what arrives, and the long span over
+        # the reliable status, which carries the same simulated time.
         running.probe.node.create_subscription(
             Clock, '/clock',
             lambda m: samples.append((time.monotonic(), m.clock.sec + 1e-9 * m.clock.nanosec)),
             qos_profile_sensor_data)
-        try:
-            running.probe.wait_for(lambda: samples and samples[-1][0] - samples[0][0] > 3.0,
-                                   timeout=30.0)
-        except AssertionError as error:
-            span = samples[-1][0] - samples[0][0] if samples else 0.0
-            raise AssertionError(f'{len(samples)} /clock samples over {span:.2f} s of wall time; '
-                                 f'node running: {running.process.poll() is None}') from error
+        statuses = []
+        running.probe.node.create_subscription(
+            String, 'status', lambda m: statuses.append((time.monotonic(), json.loads(m.data))),
+            STATUS_QOS)
+        # The first status may be the latched one from before this subscription.
+        running.probe.wait_for(lambda: len(statuses) >= 2
+                               and statuses[-1][0] - statuses[1][0] > 3.0, timeout=30.0)
+        (first_wall, first), (last_wall, last) = statuses[1], statuses[-1]
+        # Receipt times carry at most one spin period (0.05 s) of latency each.
+        assert 0.0 < last['time'] - first['time'] <= 1.02 * (last_wall - first_wall) + 0.05
+        running.probe.wait_for(lambda: len(samples) >= 20, timeout=15.0)
         (wall0, sim0), (wall1, sim1) = samples[0], samples[-1]
-        assert 0.0 < (sim1 - sim0) <= 1.02 * (wall1 - wall0)
+        assert all(b[1] >= a[1] for a, b in zip(samples, samples[1:]))
+        assert 0.0 < (sim1 - sim0) <= 1.02 * (wall1 - wall0) + 0.05
         assert running.status()['dropped_backlog_s'] >= 0.0
     finally:
         code, _, err = running.stop()
