@@ -45,17 +45,27 @@ class ProjectionWork(NamedTuple):
     moves: np.ndarray           # (n,) how many pushes move each particle
 
 
+@njit(cache=True, inline='always')
+def _into_wall(position, p, r, shift, way, low, high, dimensions):
+    """Say whether particle ``p`` moved by ``shift`` reaches a wall ``way`` points into.
+
+    The walls are their arrays (``WallBounds.low``, ``high``, ``dimensions``):
+    the in-turn passes call it per pair, where a record handed on would cost a
+    reference count per array.
+    """
+    moved = (position[p, 0] + shift[0], position[p, 1] + shift[1], position[p, 2] + shift[2])
+    for axis in range(dimensions):
+        x, d = moved[axis], way[axis]
+        if (x <= low[axis] + r and d < 0.0) or (x >= high[axis] - r and d > 0.0):
+            return True
+    return False
+
+
 @njit(cache=True)
 def _held(particles, p, shift, way, walls):
     """Say whether particle ``p`` moved by ``shift`` reaches a wall ``way`` points into."""
-    position = particles.position
-    r = particles.radius[p]
-    moved = (position[p, 0] + shift[0], position[p, 1] + shift[1], position[p, 2] + shift[2])
-    for axis in range(walls.dimensions):
-        x, d = moved[axis], way[axis]
-        if (x <= walls.low[axis] + r and d < 0.0) or (x >= walls.high[axis] - r and d > 0.0):
-            return True
-    return False
+    return _into_wall(particles.position, p, particles.radius[p], shift, way, walls.low,
+                      walls.high, walls.dimensions)
 
 
 @njit(cache=True)
@@ -146,67 +156,98 @@ def support_levels(particles, dynamic, contacts, walls, floors):
 
 @njit(cache=True)
 def support_order(contacts, level):
-    """Return the pairs nearest a support first (by the lower level of the two; stable)."""
+    """Return the pairs nearest a support first (by the lower level of the two; stable).
+
+    A counting sort by that level (pairs of unsupported particles last), in
+    pair order within a level: the order a stable sort of the keys gives.
+    """
     first, second = contacts.first, contacts.second
-    key = np.empty(first.size, dtype=np.int64)
-    for k in range(first.size):
+    m = first.size
+    key = np.empty(m, dtype=np.int64)
+    top = 0
+    for k in range(m):
         key[k] = min(level[first[k]], level[second[k]])
-    return np.argsort(key, kind='mergesort')
+        if key[k] != UNSUPPORTED:
+            top = max(top, key[k])
+    start = np.zeros(top + 3, dtype=np.int64)
+    for k in range(m):
+        if key[k] == UNSUPPORTED:
+            key[k] = top + 1
+        start[key[k] + 1] += 1
+    for c in range(top + 2):
+        start[c + 1] += start[c]
+    order = np.empty(m, dtype=np.int64)
+    for k in range(m):
+        order[start[key[k]]] = k
+        start[key[k]] += 1
+    return order
 
 
-@njit(cache=True)
-def _mover(particles, a, b, nx, ny, nz, depth, level, walls, up):
+@njit(cache=True, inline='always')
+def _mover(position, radius, inv_mass, a, b, normal, depth, level, walls, up):
     """Return which of pair (a, b) moves alone out of its overlap, or -1 if they share it.
 
     Of two dynamic particles at different support levels, one above the
-    other (the line of action ``N``, from b to a, within STACK_ALIGNMENT of
-    ``up``), the one farther from a support moves alone, unless its push by
-    ``depth`` would take it into a wall (the clamp would put it back and
-    leave the overlap).
+    other (the line of action ``normal``, from b to a, within STACK_ALIGNMENT
+    of ``up``), the one farther from a support moves alone, unless its push
+    by ``depth`` would take it into a wall (the clamp would put it back and
+    leave the overlap). ``walls`` is (present, low, high, dimensions).
     """
-    inv_mass = particles.inv_mass
+    nx, ny, nz = normal
+    present, low, high, dimensions = walls
     if abs(dot3(nx, ny, nz, up[0], up[1], up[2])) < STACK_ALIGNMENT:
         return -1
-    if level[a] < level[b] and inv_mass[b] > 0.0 and not (walls.present and _held(
-            particles, b, (-depth * nx, -depth * ny, -depth * nz), (-nx, -ny, -nz), walls)):
+    if level[a] < level[b] and inv_mass[b] > 0.0 and not (present and _into_wall(
+            position, b, radius[b], (-depth * nx, -depth * ny, -depth * nz), (-nx, -ny, -nz),
+            low, high, dimensions)):
         return b
-    if level[b] < level[a] and inv_mass[a] > 0.0 and not (walls.present and _held(
-            particles, a, (depth * nx, depth * ny, depth * nz), (nx, ny, nz), walls)):
+    if level[b] < level[a] and inv_mass[a] > 0.0 and not (present and _into_wall(
+            position, a, radius[a], (depth * nx, depth * ny, depth * nz), (nx, ny, nz), low,
+            high, dimensions)):
         return a
     return -1
 
 
-@njit(cache=True)
-def _lift_off_supports(particles, contacts, order, p, group, lifted):
+@njit(cache=True, inline='always')
+def _lift_off_supports(position, velocity, radius, pairs, p, group, lifted):
     """Project one lone mover out of all its supports at once.
 
-    ``group`` lists the positions in ``order`` of the pairs in which the
-    mover ``p`` stands on a support one level lower (which holds), so the
-    constraints are the mover's own: projected Gauss-Seidel on the pushes
-    (``lifted``, one per pair of the group, >= 0) finds the smallest move
-    that leaves none of them overlapping. A disc sunk into a groove rises
-    straight up; pushing it out of one support after the other (never back)
-    would walk it sideways every step.
+    ``pairs`` is (first, second, order) and ``group`` (head, following):
+    the positions in ``order`` of the pairs in which the mover ``p`` stands
+    on a support one level lower (which holds), linked in visit order from
+    ``head``, -1 ending the chain. The constraints are the mover's own:
+    projected Gauss-Seidel on the pushes (``lifted``, one per pair of the
+    group, >= 0) finds the smallest move that leaves none of them
+    overlapping. A disc sunk into a groove rises straight up; pushing it out
+    of one support after the other (never back) would walk it sideways every
+    step.
     """
-    position, velocity, radius = particles.position, particles.velocity, particles.radius
-    pair_first, pair_second = contacts.first, contacts.second
-    for t in range(group.size):
-        lifted[t] = 0.0
+    pair_first, pair_second, order = pairs
+    head, following = group
+    t, size = head, 0
+    while t >= 0:
+        lifted[size] = 0.0
+        size += 1
+        t = following[t]
     for _ in range(SUPPORT_SWEEPS):
         converged = True
-        for t in range(group.size):
-            k = order[group[t]]
+        t, row = head, 0
+        while t >= 0:
+            k = order[t]
+            at = row
+            t = following[t]
+            row += 1
             a, b = pair_first[k], pair_second[k]
             q = b if a == p else a
             nx, ny, nz, distance = line_of_action(
                 position[p, 0] - position[q, 0], position[p, 1] - position[q, 1],
                 position[p, 2] - position[q, 2], velocity[p, 0] - velocity[q, 0],
                 velocity[p, 1] - velocity[q, 1], velocity[p, 2] - velocity[q, 2])
-            push = max(lifted[t] + radius[p] + radius[q] - distance, 0.0)
-            change = push - lifted[t]
+            push = max(lifted[at] + radius[p] + radius[q] - distance, 0.0)
+            change = push - lifted[at]
             if change == 0.0:
                 continue
-            lifted[t] = push
+            lifted[at] = push
             position[p, 0] += change * nx
             position[p, 1] += change * ny
             position[p, 2] += change * nz
@@ -214,6 +255,16 @@ def _lift_off_supports(particles, contacts, order, p, group, lifted):
                 converged = False
         if converged:
             break
+
+
+@njit(cache=True, inline='always')
+def _pair_overlap(position, velocity, radius, a, b):
+    """Return (N, depth) of pair (a, b) as the particles stand: the line of action from b to a."""
+    nx, ny, nz, distance = line_of_action(
+        position[a, 0] - position[b, 0], position[a, 1] - position[b, 1],
+        position[a, 2] - position[b, 2], velocity[a, 0] - velocity[b, 0],
+        velocity[a, 1] - velocity[b, 1], velocity[a, 2] - velocity[b, 2])
+    return (nx, ny, nz), radius[a] + radius[b] - distance
 
 
 @njit(cache=True)
@@ -229,19 +280,25 @@ def _separate_in_turn(particles, contacts, order, level, walls, up):
     level, a cluster no wall or static particle supports, a lift that would
     go into a wall) are pushed apart by inverse mass, m_a dx_a = -m_b dx_b,
     which keeps the centre of mass, so no pass lifts an unsupported cluster.
-    Returns whether any pair overlapped.
+    Returns whether any pair overlapped. The records are unpacked once
+    here: the helpers, called per pair, take plain arrays (a record handed
+    on costs a reference count per array at every call), and each mover's
+    pairs of a level are linked in visit order as they are measured.
     """
-    position, velocity, radius = particles.position, particles.velocity, particles.radius
-    inv_mass = particles.inv_mass
+    position, velocity, radius, inv_mass = particles
     pair_first, pair_second = contacts.first, contacts.second
-    m = order.size
+    bounds = (walls.present, walls.low, walls.high, walls.dimensions)
+    pairs = (pair_first, pair_second, order)
+    m, n = order.size, position.shape[0]
     mover = np.empty(m, dtype=np.int64)
-    by_mover = np.empty(m, dtype=np.int64)
+    # Each mover's pairs of the current level, linked in visit order: the
+    # first (head), the next after each (following), the last so far (tail).
+    following = np.empty(m, dtype=np.int64)
+    head = np.empty(n, dtype=np.int64)
+    tail = np.empty(n, dtype=np.int64)
+    linked_in = np.full(n, -1, dtype=np.int64)
     lifted = np.empty(m)
-    # Where each mover's pairs of the current level start and end in by_mover.
-    group_start = np.empty(position.shape[0], dtype=np.int64)
-    group_end = np.empty(position.shape[0], dtype=np.int64)
-    lifted_in = np.full(position.shape[0], -1, dtype=np.int64)
+    lifted_in = np.full(n, -1, dtype=np.int64)
     any_overlap = False
     start = 0
     while start < m:
@@ -250,30 +307,22 @@ def _separate_in_turn(particles, contacts, order, level, walls, up):
         while end < m and min(level[pair_first[order[end]]],
                               level[pair_second[order[end]]]) == key:
             end += 1
-        lone = False
         for t in range(start, end):
             k = order[t]
             a, b = pair_first[k], pair_second[k]
-            nx, ny, nz, distance = line_of_action(
-                position[a, 0] - position[b, 0], position[a, 1] - position[b, 1],
-                position[a, 2] - position[b, 2], velocity[a, 0] - velocity[b, 0],
-                velocity[a, 1] - velocity[b, 1], velocity[a, 2] - velocity[b, 2])
-            depth = radius[a] + radius[b] - distance
+            normal, depth = _pair_overlap(position, velocity, radius, a, b)
             mover[t] = -1
             if depth > 0.0:
-                mover[t] = _mover(particles, a, b, nx, ny, nz, depth, level, walls, up)
-                lone = lone or mover[t] >= 0
-        if lone:
-            # Each mover's pairs of this level, together (stable: in visit order).
-            sorted_rows = np.argsort(mover[start:end], kind='mergesort')
-            for s in range(end - start):
-                t = start + sorted_rows[s]
-                by_mover[start + s] = t
-                p = mover[t]
+                p = _mover(position, radius, inv_mass, a, b, normal, depth, level, bounds, up)
+                mover[t] = p
                 if p >= 0:
-                    if s == 0 or mover[by_mover[start + s - 1]] != p:
-                        group_start[p] = start + s
-                    group_end[p] = start + s + 1
+                    following[t] = -1
+                    if linked_in[p] != start:
+                        linked_in[p] = start
+                        head[p] = t
+                    else:
+                        following[tail[p]] = t
+                    tail[p] = t
         for t in range(start, end):
             p = mover[t]
             if p >= 0:
@@ -281,23 +330,19 @@ def _separate_in_turn(particles, contacts, order, level, walls, up):
                 if lifted_in[p] == start:
                     continue
                 lifted_in[p] = start
-                _lift_off_supports(particles, contacts, order, p,
-                                   by_mover[group_start[p]:group_end[p]], lifted)
+                _lift_off_supports(position, velocity, radius, pairs, p,
+                                   (head[p], following), lifted)
                 continue
             k = order[t]
             a, b = pair_first[k], pair_second[k]
-            nx, ny, nz, distance = line_of_action(
-                position[a, 0] - position[b, 0], position[a, 1] - position[b, 1],
-                position[a, 2] - position[b, 2], velocity[a, 0] - velocity[b, 0],
-                velocity[a, 1] - velocity[b, 1], velocity[a, 2] - velocity[b, 2])
-            depth = radius[a] + radius[b] - distance
+            normal, depth = _pair_overlap(position, velocity, radius, a, b)
             if not depth > 0.0:
                 continue
             any_overlap = True
             w_a, w_b = inv_mass[a], inv_mass[b]
             # Overlapping only since this level's earlier pushes: one above the
             # other, the one nearer a support still holds.
-            alone = _mover(particles, a, b, nx, ny, nz, depth, level, walls, up)
+            alone = _mover(position, radius, inv_mass, a, b, normal, depth, level, bounds, up)
             if alone == a:
                 w_b = 0.0
             elif alone == b:
@@ -305,6 +350,7 @@ def _separate_in_turn(particles, contacts, order, level, walls, up):
             w_sum = w_a + w_b
             if not w_sum > 0.0:
                 continue
+            nx, ny, nz = normal
             push_a, push_b = depth * w_a / w_sum, depth * w_b / w_sum
             position[a, 0] += push_a * nx
             position[a, 1] += push_a * ny
