@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pytest
 
@@ -301,3 +302,44 @@ def test_one_size_gas_takes_the_neighbour_row_scan_and_equals_brute_force(
         assert len(expected) > position.shape[0] // 2
         assert set(zip(i.tolist(), j.tolist())) == expected
         assert np.all(i < j) and np.all(np.diff(i * reach.size + j) > 0)
+
+
+def _found_fields(found: grid_kernels.Found) -> tuple:
+    """Return a ``Found`` as plain values, for comparing two searches."""
+    return (found.pairs.first.tolist(), found.pairs.second.tolist(), found.complete,
+            found.needed, found.estimated, found.tested)
+
+
+@pytest.mark.parametrize('threads', [1, 2])
+def test_shared_search_is_the_serial_one_on_a_gas_mixed_sizes_and_over_the_limit(threads):
+    # grid_pairs_shared writes a dense gas's pairs block by block on the threads
+    # and sorts them: the same Found as grid_pairs, for any thread count. A
+    # mixed-size grid and a search over its pair limit (it gives up with the
+    # same estimate) go to grid_pairs itself.
+    rng = np.random.default_rng(19)
+    count = 3 * 4096 + 77                       # several blocks, the last one short
+    side = 31.0
+    gas = rng.uniform(0.0, side, (count, 3))
+    gas_reach = rng.uniform(0.4, 0.5, count)
+    mixed_reach = gas_reach.copy()
+    mixed_reach[::50] = 3.0
+    limit = broadphase_module._limit()
+    still = broadphase_module._still()
+    previous = numba.get_num_threads()
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        for reach, search_limit in ((gas_reach, limit), (mixed_reach, limit),
+                                    (gas_reach, grid_kernels.SearchLimit(1000, 10 ** 9))):
+            grid = grid_kernels.make_grid(gas, reach, broadphase_module.size_classes(reach))
+            serial = grid_kernels.grid_pairs(reach, grid, search_limit, still)
+            shared = grid_kernels.grid_pairs_shared(reach, grid, search_limit)
+            assert _found_fields(shared) == _found_fields(serial)
+        assert not shared.complete and shared.needed > 1000   # the last search gave up
+        dense = grid_kernels.make_grid(gas, gas_reach, broadphase_module.size_classes(gas_reach))
+        assert grid_kernels._one_dense_class(dense)
+        found = grid_kernels.grid_pairs_shared(gas_reach, dense, limit)
+        assert found.complete and found.pairs.first.size > count // 2
+        i, j = found.pairs
+        assert np.all(i < j) and np.all(np.diff(i * count + j) > 0)
+    finally:
+        numba.set_num_threads(previous)

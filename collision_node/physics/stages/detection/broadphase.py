@@ -39,6 +39,7 @@ import numpy as np
 from . import grid_kernels
 from .grid_kernels import Found, Grid, PathMotion, SearchLimit
 from ...step.pipeline import Stage, StepContext
+from ...step.threads import parallel
 from ...model.validation import SceneError
 from ...model.tunables import (CLASS_RATIO, SKIN_STEPS, SKIN_MAX_RADII, SKIN_MIN_RADII,
                                MAX_MOVER_SHARE, ALL_PAIRS_UP_TO, STEP_MEMORY_BUDGET, PAIR_BYTES,
@@ -124,14 +125,18 @@ def size_classes(reach: np.ndarray) -> list[np.ndarray]:
 
 
 def _search(position: np.ndarray, reach: np.ndarray,
-            paths: Optional[tuple[np.ndarray, np.ndarray]] = None) -> tuple[Found, Grid]:
+            paths: Optional[tuple[np.ndarray, np.ndarray]] = None,
+            threads: int = 1) -> tuple[Found, Grid]:
     """Search the pairs within reach (and, with ``paths``, whose paths meet); may give up.
 
     ``paths`` is (shift, path reach) per particle: its displacement over
-    the step and its reach about that straight path.
+    the step and its reach about that straight path. ``threads``: how many
+    threads may share a sphere search (the same pairs for any count).
     """
     reach = np.ascontiguousarray(reach, dtype=np.float64)
     grid = grid_kernels.make_grid(position, reach, size_classes(reach))
+    if paths is None and parallel(threads, reach.shape[0]):
+        return grid_kernels.grid_pairs_shared(reach, grid, _limit()), grid
     motion = _still()
     if paths is not None:
         shift, path_reach = paths
@@ -141,15 +146,16 @@ def _search(position: np.ndarray, reach: np.ndarray,
     return grid_kernels.grid_pairs(reach, grid, _limit(), motion), grid
 
 
-def search_pairs(position: np.ndarray, reach: np.ndarray) -> PairSearch:
+def search_pairs(position: np.ndarray, reach: np.ndarray, threads: int = 1) -> PairSearch:
     """Search all pairs with |p_i - p_j| <= reach_i + reach_j, exactly those.
 
     Raises ``StepTooLarge`` when they would be more than ``MAX_PAIRS``.
+    ``threads``: how many threads may share the search (the same pairs).
     """
     n = position.shape[0]
     if n < 2:
         return PairSearch(_EMPTY, _EMPTY, None)
-    found, grid = _search(position, reach)
+    found, grid = _search(position, reach, threads=threads)
     if not found.complete:
         raise _too_large(found, position, reach, False)
     return PairSearch(found.pairs.first, found.pairs.second, grid)
@@ -170,7 +176,8 @@ def candidate_pairs(position: np.ndarray, reach: np.ndarray) -> tuple[np.ndarray
 
 
 def swept_pairs(position: np.ndarray, radius: np.ndarray, extra: np.ndarray,
-                velocity: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+                velocity: np.ndarray, dt: float, threads: int = 1
+                ) -> tuple[np.ndarray, np.ndarray]:
     """Return the pairs within r + extra of each other, or along paths when they are too many.
 
     The sphere search (``candidate_pairs`` with reach radius + extra) first;
@@ -178,12 +185,13 @@ def swept_pairs(position: np.ndarray, radius: np.ndarray, extra: np.ndarray,
     (velocity * dt) come within radius + (extra - |v| dt) of each other at
     one moment: a subset, those that can meet in the step. Raises
     ``StepTooLarge`` when even those are too many (or too costly to find).
+    ``threads``: how many threads may share the sphere search.
     """
     n = position.shape[0]
     if n < 2:
         return _EMPTY, _EMPTY
     reach = radius + extra
-    found, _ = _search(position, reach)
+    found, _ = _search(position, reach, threads=threads)
     if found.complete:
         return found.pairs.first, found.pairs.second
     if not np.any(extra > 0.0):
@@ -262,6 +270,7 @@ class BroadphaseStage(Stage):
         self._median_radius, self._median_of = 0.0, None
         self._direct = False           # allowances too large for the skin: search each step
         self.searches = 0              # full searches so far (for tests and benchmarks)
+        self.threads = 1               # threads a search may share (the step's count)
         self.mover_updates = 0         # steps that patched the list with mover pairs
 
     def run(self, ctx: StepContext) -> None:
@@ -278,6 +287,7 @@ class BroadphaseStage(Stage):
                 if self.impacts:
                     extra = extra + ctx.dt * np.sqrt(
                         np.einsum('ij,ij->i', state.velocity, state.velocity))
+        self.threads = ctx.threads
         ctx.pair_i, ctx.pair_j = self.find(state.position, state.radius, state.velocity,
                                            state.inv_mass, ctx.dt, extra)
 
@@ -307,7 +317,7 @@ class BroadphaseStage(Stage):
             # Allowances outgrew the skin last step: search directly until
             # they fit again, instead of rebuilding a list nobody can reuse.
             if np.count_nonzero(extra > self._half_skin) > MAX_MOVER_SHARE * n:
-                return swept_pairs(position, radius, extra, velocity, dt)
+                return swept_pairs(position, radius, extra, velocity, dt, self.threads)
             self._direct = False
             self._built_position = None
         if not self._list_matches(position, radius):
@@ -318,14 +328,14 @@ class BroadphaseStage(Stage):
             movers = self._movers(position, extra)
             if movers.size > MAX_MOVER_SHARE * n:
                 self._direct = True
-                return swept_pairs(position, radius, extra, velocity, dt)
+                return swept_pairs(position, radius, extra, velocity, dt, self.threads)
         if movers.size == 0:
             return self._search.i, self._search.j
         self.mover_updates += 1
         pairs = self._with_mover_pairs(position, radius, movers, extra)
         if pairs is None:
             # The movers' reach holds too many pairs: search along their paths.
-            return swept_pairs(position, radius, extra, velocity, dt)
+            return swept_pairs(position, radius, extra, velocity, dt, self.threads)
         return pairs
 
     def _movers(self, position: np.ndarray, extra: np.ndarray) -> np.ndarray:
@@ -358,7 +368,7 @@ class BroadphaseStage(Stage):
         # room for displacement before particles count as movers.
         skin = max(skin, 4.0 * self._extra_floor)
         self._half_skin = 0.5 * skin
-        self._search = search_pairs(position, radius + self._half_skin)
+        self._search = search_pairs(position, radius + self._half_skin, self.threads)
         self._keys = self._search.i * n + self._search.j
         self._built_position = grid_kernels.as_points(position).copy()
         self._built_radius = radius
@@ -387,7 +397,8 @@ class BroadphaseStage(Stage):
         if movers.size <= ALL_PAIRS_UP_TO:
             between_i, between_j = np.triu_indices(movers.size, k=1)
         else:
-            between, _ = _search(position[movers], radius[movers] + extra[movers])
+            between, _ = _search(position[movers], radius[movers] + extra[movers],
+                                 threads=self.threads)
             if not between.complete:
                 return None
             between_i, between_j = between.pairs.first, between.pairs.second

@@ -47,9 +47,10 @@ import numpy as np
 from ...step import numba_cache  # noqa: F401 (chooses numba's cache directory first)
 from ...law.primitives import dot3
 
-from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
+from numba import njit, prange  # noqa: E402,I100 (after the cache directory is chosen)
 from ...model.tunables import (PAIR_SLACK, SCAN_SLACK, MAX_CELLS_PER_AXIS, CELL_REACHES,
-                               DENSE_CELLS_PER_ITEM, CELL_MARGIN, DENSE_AXIS_CELLS, PATH_SLACK)
+                               DENSE_CELLS_PER_ITEM, CELL_MARGIN, DENSE_AXIS_CELLS, PATH_SLACK,
+                               PARALLEL_BLOCK_ITEMS)
 
 # Multipliers of the cell hash (large odd constants: neighbouring cells
 # land in unrelated buckets).
@@ -443,15 +444,23 @@ def _dense_pairs(grid, item_reach, out_a, out_b):
     it that comes later), each one range of items. The exact test is
     ``_near``'s, so the set is ``_scan_class``'s.
     """
+    return _dense_range(grid, item_reach, out_a, out_b, 0, grid.item.size, 0, out_a.size)
+
+
+@njit(cache=True)
+def _dense_range(grid, item_reach, out_a, out_b, begin, end, count, capacity):
+    """``_dense_pairs`` for items begin .. end - 1, writing from row ``count`` below ``capacity``.
+
+    Returns (the row after the last written, the first item not done). A
+    function of its own (never inlined): numba's parallel loops lose the
+    stores of inlined code.
+    """
     item, item_cell, item_position = grid.item, grid.item_cell, grid.item_position
     low, high, bucket = grid.low, grid.high, grid.bucket
-    n = item.size
-    capacity = out_a.size
-    count = 0
     lx, ly, lz = low[0, 0], low[0, 1], low[0, 2]
     nx, ny, nz = high[0, 0] - lx + 1, high[0, 1] - ly + 1, high[0, 2] - lz + 1
     base = grid.table_start[0]
-    for m in range(n):
+    for m in range(begin, end):
         point = (item_position[m, 0], item_position[m, 1], item_position[m, 2])
         own_reach = item_reach[m]
         query = item[m]
@@ -462,7 +471,7 @@ def _dense_pairs(grid, item_reach, out_a, out_b):
                 return count, m
             count = _append_near(first, stop, point, own_reach, query, item, item_position,
                                  item_reach, out_a, out_b, count)
-    return count, n
+    return count, end
 
 
 @njit(cache=True)
@@ -477,12 +486,18 @@ def _items_reach(reach, item):
 @njit(cache=True)
 def _dense_candidates(grid, items):
     """Return how many candidates ``_dense_pairs`` writes for its first ``items`` items."""
+    return float(_dense_candidates_in(grid, 0, items))
+
+
+@njit(cache=True)
+def _dense_candidates_in(grid, begin, end):
+    """Return how many candidates ``_dense_range`` writes for items begin .. end - 1."""
     item_cell, low, high, bucket = grid.item_cell, grid.low, grid.high, grid.bucket
     lx, ly, lz = low[0, 0], low[0, 1], low[0, 2]
     nx, ny, nz = high[0, 0] - lx + 1, high[0, 1] - ly + 1, high[0, 2] - lz + 1
     base = grid.table_start[0]
-    total = 0.0
-    for m in range(items):
+    total = 0
+    for m in range(begin, end):
         cx, cy, cz = item_cell[m, 0] - lx, item_cell[m, 1] - ly, item_cell[m, 2] - lz
         for r in range(5):
             first, stop = _half_row(bucket, base, m, (cx, cy, cz), (nx, ny, nz), r)
@@ -516,6 +531,78 @@ def _dense_grid_pairs(reach, grid, limit):
         size = min(4 * size, largest)
 
 
+@njit(cache=True)
+def _one_dense_class(grid):
+    """Say whether ``grid`` is one dense class whose cells hold every search (a gas)."""
+    return (grid.class_start.size == 2 and grid.dense[0]
+            and grid.cell[0] >= CELL_REACHES * grid.class_reach[0] * (1.0 + CELL_MARGIN)
+            and np.max(grid.high[0] - grid.low[0]) < DENSE_AXIS_CELLS)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _dense_blocks_parallel(grid, item_reach, out_a, out_b, offset, ends):
+    """Write each block's pairs from its own rows of the buffers, blocks on the threads.
+
+    Block b is items b * PARALLEL_BLOCK_ITEMS onwards; its candidates fit
+    rows offset[b] .. offset[b + 1] - 1 exactly, and ends[b] is the row
+    after its last pair.
+    """
+    n = grid.item.size
+    for block in prange(offset.size - 1):
+        begin = block * PARALLEL_BLOCK_ITEMS
+        ends[block] = _dense_range(grid, item_reach, out_a, out_b, begin,
+                                   min(begin + PARALLEL_BLOCK_ITEMS, n), offset[block],
+                                   offset[block + 1])[0]
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _dense_counts_parallel(grid, counts):
+    """Fill counts[b + 1] with block b's candidates (``_dense_candidates_in``), on the threads."""
+    n = grid.item.size
+    for block in prange(counts.size - 1):
+        begin = block * PARALLEL_BLOCK_ITEMS
+        counts[block + 1] = _dense_candidates_in(grid, begin,
+                                                 min(begin + PARALLEL_BLOCK_ITEMS, n))
+
+
+@njit(cache=True, nogil=True)
+def grid_pairs_shared(reach, grid, limit):
+    """Return ``grid_pairs``' ``Found`` of a sphere search, a gas's shared among the threads.
+
+    On one dense class (``_one_dense_class``) the items are split into
+    blocks of PARALLEL_BLOCK_ITEMS: the candidates of each block are counted
+    from the table, each block writes its pairs into its own rows, and the
+    rows are joined in block order; the pairs are then sorted by (i, j), so
+    the result is ``grid_pairs``' whatever the thread count. Any other grid,
+    and a search whose candidates or pairs pass ``limit``, is
+    ``grid_pairs``' own (which gives up with its estimate).
+    """
+    motion = PathMotion(False, np.zeros((0, 3)), np.zeros(0), np.zeros(1, dtype=np.int64))
+    n = grid.item.size
+    if not _one_dense_class(grid):
+        return grid_pairs(reach, grid, limit, motion)
+    blocks = (n + PARALLEL_BLOCK_ITEMS - 1) // PARALLEL_BLOCK_ITEMS
+    offset = np.zeros(blocks + 1, dtype=np.int64)
+    _dense_counts_parallel(grid, offset)
+    for block in range(blocks):
+        offset[block + 1] += offset[block]
+    if offset[blocks] > limit.max_pairs + n:
+        return grid_pairs(reach, grid, limit, motion)
+    item_reach = _items_reach(reach, grid.item)
+    out_a = np.empty(offset[blocks], dtype=np.int64)
+    out_b = np.empty(offset[blocks], dtype=np.int64)
+    ends = np.empty(blocks, dtype=np.int64)
+    _dense_blocks_parallel(grid, item_reach, out_a, out_b, offset, ends)
+    count = 0
+    for block in range(blocks):
+        for row in range(offset[block], ends[block]):
+            out_a[count], out_b[count] = out_a[row], out_b[row]
+            count += 1
+    if count > limit.max_pairs:
+        return grid_pairs(reach, grid, limit, motion)
+    return Found(sort_pairs(out_a, out_b, count, n), True, float(count), False, 0)
+
+
 @njit(cache=True, nogil=True)
 def grid_pairs(reach, grid, limit, motion):
     """Return the ``Found`` pairs (i < j, sorted) with |p_i - p_j| <= reach_i + reach_j (+ slack).
@@ -528,9 +615,7 @@ def grid_pairs(reach, grid, limit, motion):
     item_position, class_start, class_reach = grid.item_position, grid.class_start, \
         grid.class_reach
     n = grid.item.size
-    if not motion.active and class_start.size == 2 and grid.dense[0] and \
-            grid.cell[0] >= CELL_REACHES * class_reach[0] * (1.0 + CELL_MARGIN) and \
-            np.max(grid.high[0] - grid.low[0]) < DENSE_AXIS_CELLS:
+    if not motion.active and _one_dense_class(grid):
         # One dense class (a gas): the neighbour-cell scan, no search boxes.
         return _dense_grid_pairs(reach, grid, limit)
     item_reach = _items_reach(reach, grid.item)
@@ -701,6 +786,8 @@ def warm_up() -> None:
     grid_pairs(reach, grid, limit, moving)
     gas = make_grid(position[:2], reach[:2], [np.array([0, 1])])
     grid_pairs(reach[:2], gas, limit, still)
+    grid_pairs_shared(reach[:2], gas, limit)
+    grid_pairs_shared(reach, grid, limit)
     query = np.array([0], dtype=np.int64)
     near = grid_query(position, query, reach[query], partner_terms(reach, grid), grid, limit)
     keys = np.array([1], dtype=np.int64)
@@ -710,4 +797,5 @@ def warm_up() -> None:
 
 def kernels() -> list:
     """Return the compiled kernels of this module (for the cache check)."""
-    return [build_grid, grid_pairs, grid_query, movers, merge_pairs, sort_pairs]
+    return [build_grid, grid_pairs, grid_pairs_shared, grid_query, movers, merge_pairs,
+            sort_pairs]

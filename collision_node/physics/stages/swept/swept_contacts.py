@@ -119,6 +119,7 @@ class SweptContactStage(Stage):
         s, dt = ctx.state, ctx.dt
         n = len(s)
         dynamic = s.dynamic
+        self._pairs.threads = ctx.threads
         pair_i, pair_j = self._pairs.find(s.position, s.radius, s.velocity, s.inv_mass, dt,
                                           extra=self._travel(ctx))
         ctx.pair_i, ctx.pair_j = pair_i, pair_j
