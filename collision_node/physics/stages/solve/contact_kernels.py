@@ -35,8 +35,9 @@ from ...law.primitives import (apply_pair_normal, apply_tangential, apply_wall_n
                                friction_accumulated, into_cone, loss_share, pair_friction_spun,
                                push_pair, push_wall, RESTITUTION, spin_factor, STICK_FACTOR,
                                tangential_slip, WALLS)
-from ...model.tunables import (MIN_SUPPORT_ALIGNMENT, PARALLEL_MIN_BATCH, PARALLEL_SOLVE_BLOCK,
-                               SUPPORT_SLOP, WALL_SLOP)
+from ...model.tunables import (COLD_START_SHARE, COLD_START_SWEEPS, MIN_SUPPORT_ALIGNMENT,
+                               PARALLEL_MIN_BATCH, PARALLEL_SOLVE_BLOCK, SUPPORT_SLOP,
+                               WALL_SLOP)
 from ...step.step_kernels import incident, spread_levels, UNSUPPORTED
 from .wall_kernels import WallPlanes
 
@@ -619,12 +620,12 @@ def _visit_colour_parallel(bodies, marks, pairs, impulses, settings, losses, lo,
 
 @njit(cache=True)
 def solve_contacts(bodies, marks, pairs, walls, pair_impulses, wall_impulses, settings,
-                   losses):
+                   losses, budget):
     """Run one contact solve in place; return the sweeps run. See ``SequentialImpulseStage``.
 
     Sweeps visit the pairs in visit order, then each wall plane, until no
     contact's impulse changes by more than ``tolerance`` times its mass
-    (its velocity change) or ``iterations`` sweeps are done. Outputs are
+    (its velocity change) or ``budget`` sweeps are done. Outputs are
     filled in place (``ContactImpulses``, ``Losses``). A contact found
     before it touches (``ahead``, a gap g > 0) is held to closing at most
     g / dt (its ``allowance``: it touches at the end of the next drift, no
@@ -655,7 +656,7 @@ def solve_contacts(bodies, marks, pairs, walls, pair_impulses, wall_impulses, se
     has_walls = walls.start.size > 1
     first_wall_visit = True
     sweeps = 0
-    for _ in range(settings.iterations):
+    for _ in range(budget):
         sweeps += 1
         applied = _sweep_pairs(bodies, marks, pairs, pair_impulses, settings, losses)
         if has_walls:
@@ -839,6 +840,41 @@ def _warm_from(cache, ids, pairs, walls, pair_impulses, wall_impulses):
             wall_impulses.resting[c] = cache.wall_normal[row]
             for d in range(3):
                 wall_impulses.resting_tangential[c, d] = cache.wall_tangential[row, d]
+
+
+@njit(cache=True)
+def _mostly_cold(bodies, pairs, walls, pair_impulses, wall_impulses, settings):
+    """Say whether most of a solve's touching resting contacts start cold (nothing cached).
+
+    Touching: within SUPPORT_SLOP of the smaller radius at the end of the
+    next drift (``allowance`` dt); resting: closing slower than the
+    threshold. More than COLD_START_SHARE of them without a warm start
+    (a stack or pile built in place, an island just woken) makes the solve's
+    budget COLD_START_SWEEPS.
+    """
+    v, radius, dt, threshold = bodies.velocity, bodies.radius, settings.dt, settings.threshold
+    first, second, normal = pairs.first, pairs.second, pairs.normal
+    touching = cold = 0
+    for k in range(first.size):
+        a, b = first[k], second[k]
+        if pairs.allowance[k] * dt > SUPPORT_SLOP * min(radius[a], radius[b]):
+            continue
+        approach = -dot3(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2],
+                         normal[k, 0], normal[k, 1], normal[k, 2])
+        if approach >= threshold:
+            continue
+        touching += 1
+        if not pair_impulses.resting[k] > 0.0:
+            cold += 1
+    for c in range(walls.particle.size):
+        p = walls.particle[c]
+        if walls.allowance[c] * dt > SUPPORT_SLOP * radius[p] \
+                or -walls.inward[c] * v[p, walls.axis[c]] >= threshold:
+            continue
+        touching += 1
+        if not wall_impulses.resting[c] > 0.0:
+            cold += 1
+    return touching > 0 and cold > COLD_START_SHARE * touching
 
 
 @njit(cache=True)
@@ -1051,6 +1087,10 @@ def _solve_step(bodies, position, ids, contacts, planes, coefficients, settings,
             keyed = False
     if keyed:
         _warm_from(cache, ids, pairs, walls, pair_impulses, wall_impulses)
+    budget = settings.iterations
+    if settings.accumulate and budget < COLD_START_SWEEPS and _mostly_cold(
+            bodies, pairs, walls, pair_impulses, wall_impulses, settings):
+        budget = COLD_START_SWEEPS
     if settings.accumulate:
         _seed_loads(bodies, dynamic, pairs, walls, pair_impulses, wall_impulses, settings)
     warm = n if settings.accumulate else 0
@@ -1060,7 +1100,7 @@ def _solve_step(bodies, position, ids, contacts, planes, coefficients, settings,
     for p in range(booked.size):
         losses.per_particle[BOOKED, p] = booked[p]
     sweeps = solve_contacts(bodies, marks, pairs, walls, pair_impulses, wall_impulses,
-                            settings, losses)
+                            settings, losses, budget)
     for p in range(booked.size):
         booked[p] = losses.per_particle[BOOKED, p]
     return SolveResult(sweeps, losses.totals, pair_impulses, walls, wall_impulses,
