@@ -47,8 +47,8 @@ from ...law import coloring
 from ...law.primitives import Bodies, FRICTION, RESTITUTION, WALLS
 from ...model.effects import Walls
 from ...model.impacts import record_pairs, record_walls
-from ...model.tunables import (PARALLEL_MIN_ITEMS, RESIDUAL_FRACTION, SPECULATIVE_MARGIN,
-                               STRIKE_FACTOR)
+from ...model.tunables import (COLD_START_SWEEPS, PARALLEL_MIN_ITEMS, RESIDUAL_FRACTION,
+                               SPECULATIVE_MARGIN, STRIKE_FACTOR)
 from ...step.pipeline import Contacts, Stage, StepContext
 from .contact_kernels import (Coefficients, MAX_CACHED_ID, solve_step, SolverSettings,
                               StepContacts, WarmStartCache)
@@ -298,5 +298,5 @@ class SequentialImpulseStage(Stage):
                      'at most their gap in the next step')
         if self.warm_start:
             text += ('; resting impulses accumulated (clamped) and warm-started from the '
-                     'previous step')
+                     f'previous step, up to {COLD_START_SWEEPS} sweeps when most start cold')
         return text
