@@ -38,8 +38,9 @@ STRIKE_FACTOR = 10.0
 # solve starts from the static loads alone (``_seed_loads``), and `fast`'s 8
 # sweeps then build a pyramid's sideways thrust over several steps while it
 # gives way (0.069 r without friction; 128 sweeps on the first step: 0.0025
-# r). It still stops once converged; warm solves keep the preset's budget.
-# More only costs time on cold starts; the preset's own budget turns it off.
+# r). It still stops once converged; warm solves keep the preset's budget, and
+# a preset whose own budget is at least this never changes it. More only
+# costs time on cold starts.
 COLD_START_SWEEPS = 128
 
 # Share of the touching resting contacts that must start cold for that
