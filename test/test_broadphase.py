@@ -343,3 +343,35 @@ def test_shared_search_is_the_serial_one_on_a_gas_mixed_sizes_and_over_the_limit
         assert np.all(i < j) and np.all(np.diff(i * count + j) > 0)
     finally:
         numba.set_num_threads(previous)
+
+
+@pytest.mark.parametrize('threads', [1, 2])
+def test_shared_grid_and_movers_are_the_serial_ones(threads):
+    # build_grid's shared loops (extents, cells, buckets, placing, in blocks)
+    # and movers_shared give the serial grid and mover list to the last entry,
+    # for a dense gas and for mixed sizes (hashed classes), at any thread count.
+    rng = np.random.default_rng(23)
+    count = 3 * 4096 + 77
+    gas = rng.uniform(-7.0, 24.0, (count, 3))
+    gas_reach = rng.uniform(0.4, 0.5, count)
+    mixed_reach = gas_reach.copy()
+    mixed_reach[::50] = 3.0
+    mixed_reach[::97] = 0.05
+    previous = numba.get_num_threads()
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        for reach in (gas_reach, mixed_reach):
+            classes = broadphase_module.size_classes(reach)
+            serial = grid_kernels.make_grid(gas, reach, classes)
+            shared = grid_kernels.make_grid(gas, reach, classes, True)
+            for name, value in serial._asdict().items():
+                np.testing.assert_array_equal(getattr(shared, name), value, err_msg=name)
+        assert len(broadphase_module.size_classes(mixed_reach)) == 3
+        built = gas + rng.normal(0.0, 0.05, gas.shape)
+        extra = rng.uniform(0.0, 0.02, count)
+        serial_movers = grid_kernels.movers(gas, built, extra, 0.1)
+        assert 0 < serial_movers.size < count
+        np.testing.assert_array_equal(grid_kernels.movers_shared(gas, built, extra, 0.1),
+                                      serial_movers)
+    finally:
+        numba.set_num_threads(previous)

@@ -14,7 +14,12 @@ import numpy as np
 
 from collision_node import World
 from collision_node.physics.model.accuracy import PRESETS
-from collision_node.physics.stages.solve.contact_kernels import find_wall_contacts
+import numba
+import pytest
+
+from collision_node.physics.stages.solve.contact_kernels import (
+    find_wall_contacts, find_wall_contacts_shared)
+from collision_node.physics.stages.solve.wall_kernels import WallPlanes
 from collision_node.physics.model.scene import load_scene
 from collision_node.physics.model.tunables import WALL_SLOP
 from collision_node.physics.stages.solve.sequential_impulses import SequentialImpulseStage
@@ -53,6 +58,30 @@ def test_compiled_wall_contacts_are_the_numpy_ones():
     assert set(found) == {(w.axis, w.plane) for w in expected}
     for wall in expected:
         np.testing.assert_array_equal(found[(wall.axis, wall.plane)], wall.index)
+
+
+@pytest.mark.parametrize('threads', [1, 2])
+def test_shared_wall_contacts_are_the_serial_ones(threads):
+    # Each particle's planes tested on the threads into a mask, then listed
+    # plane by plane in particle order: the serial result, entry for entry.
+    rng = np.random.default_rng(5)
+    count = 20_000
+    position = rng.uniform(0.0, 1.0, (count, 3))
+    radius = rng.uniform(0.005, 0.02, count)
+    dynamic = rng.random(count) > 0.1
+    planes = WallPlanes(np.array([0, 0, 1, 1, 2, 2]), np.array([0.0, 1.0] * 3),
+                        np.array([1.0, -1.0] * 3), np.full(6, 1e-15))
+    previous = numba.get_num_threads()
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        for slop, ahead in ((WALL_SLOP, 0.0), (0.5, 0.01)):
+            serial = find_wall_contacts(position, radius, dynamic, planes, slop, ahead)
+            shared = find_wall_contacts_shared(position, radius, dynamic, planes, slop, ahead)
+            for got, expected in zip(shared, serial):
+                np.testing.assert_array_equal(got, expected)
+            assert serial[1].size > 100
+    finally:
+        numba.set_num_threads(previous)
 
 
 def test_compiled_cache_is_sorted_and_found_by_the_numpy_lookup():

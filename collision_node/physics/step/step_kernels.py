@@ -10,7 +10,9 @@ operations in the same order as the numpy statements they replace:
   (``stages.motion.gravity``);
 - ``rotate_orientations``: the spin stage's quaternion update in place;
 - ``all_finite``: the world's check that no position or velocity became
-  NaN or inf;
+  NaN or inf (``all_finite_shared``: the same check on the threads);
+- ``drift_shared``: the drift stage's x += v dt on the threads, for large
+  worlds;
 - ``add_losses`` and ``add_pair_losses``: ``StepContext.book``'s per-particle
   attribution, the same sequential additions as ``np.add.at``;
 - ``finish_lift``: ``energy.lift``'s quotient -m g . dx without its masks;
@@ -28,7 +30,7 @@ from typing import NamedTuple
 import numpy as np
 
 from . import numba_cache  # noqa: F401,I100 (chooses numba's cache directory first)
-from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
+from numba import njit, prange  # noqa: E402,I100 (after the cache directory is chosen)
 
 
 class ParticleArrays(NamedTuple):
@@ -38,6 +40,11 @@ class ParticleArrays(NamedTuple):
     velocity: np.ndarray        # (n, 3), m/s
     radius: np.ndarray          # (n,), m
     inv_mass: np.ndarray        # (n,), 1/kg (0: static)
+
+
+def float_rows(a: np.ndarray) -> bool:
+    """Say whether ``a`` is a C-contiguous float64 array of 3-vectors (what the kernels take)."""
+    return a.dtype == np.float64 and a.ndim == 2 and a.shape[1] == 3 and a.flags.c_contiguous
 
 
 def particle_arrays(state) -> ParticleArrays:
@@ -97,6 +104,29 @@ def _finite(a):
 def all_finite(position, velocity, angular):
     """Return whether every entry of the three arrays is finite (``angular`` may be empty)."""
     return _finite(position) and _finite(velocity) and _finite(angular)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def all_finite_shared(position, velocity, angular):
+    """Return ``all_finite``'s answer, rows checked on the threads (a count: any order)."""
+    bad = 0
+    for p in prange(position.shape[0]):
+        for d in range(3):
+            if not (math.isfinite(position[p, d]) and math.isfinite(velocity[p, d])):
+                bad += 1
+    for p in prange(angular.shape[0]):
+        for d in range(3):
+            if not math.isfinite(angular[p, d]):
+                bad += 1
+    return bad == 0
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def drift_shared(position, velocity, dt):
+    """Add velocity * dt to position in place, rows on the threads (numpy's two roundings)."""
+    for p in prange(position.shape[0]):
+        for d in range(position.shape[1]):
+            position[p, d] += velocity[p, d] * dt
 
 
 @njit(cache=True, nogil=True)
@@ -201,6 +231,9 @@ def warm_up() -> None:
     rotate_orientations(np.array([[0.0, 0.0, 0.0, 1.0]] * 2), velocity, 0.01)
     all_finite(position, velocity, np.zeros((0, 3)))
     all_finite(position, velocity, velocity)
+    all_finite_shared(position, velocity, np.zeros((0, 3)))
+    all_finite_shared(position, velocity, velocity)
+    drift_shared(position.copy(), velocity, 0.01)
     pair = np.array([0], dtype=np.int64), np.array([1], dtype=np.int64)
     add_losses(np.zeros(2), pair[0], np.ones(1))
     add_pair_losses(np.zeros(2), inv_mass, pair[0], pair[1], np.ones(1))
@@ -209,5 +242,5 @@ def warm_up() -> None:
 
 def kernels() -> list:
     """Return the compiled kernels of this module (for ``kernels.prepare``)."""
-    return [apply_gravity, rotate_orientations, all_finite, add_losses, add_pair_losses,
-            finish_lift]
+    return [apply_gravity, rotate_orientations, all_finite, all_finite_shared, drift_shared,
+            add_losses, add_pair_losses, finish_lift]

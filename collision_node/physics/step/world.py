@@ -21,7 +21,7 @@ from .plan import build_pipeline
 from ..stages.detection.broadphase import check_pair_budget, StepTooLarge, swept_allowance
 from ..stages.sleeping.sleep import asleep_count, sleepers_touching, wake_islands
 from .pipeline import StepContext, StepStats
-from .step_kernels import all_finite
+from .step_kernels import all_finite, all_finite_shared, float_rows
 from . import threads as thread_count
 from .timing import StepProfile, build_profile
 from ..model.scene import Scene, parse_spawn
@@ -30,11 +30,6 @@ from ..model.validation import SceneError, fail
 
 
 _NO_SPIN = np.zeros((0, 3))
-
-
-def _float_rows(a: np.ndarray) -> bool:
-    """Say whether ``a`` is a C-contiguous float64 array of 3-vectors (the compiled check's)."""
-    return a.dtype == np.float64 and a.ndim == 2 and a.shape[1] == 3 and a.flags.c_contiguous
 
 
 class NonFiniteStateError(FloatingPointError):
@@ -169,9 +164,11 @@ class World:
         """Raise instead of letting NaN or inf spread through the state."""
         s = self.state
         spin = _NO_SPIN if s.angular_velocity is None else s.angular_velocity
-        if _float_rows(s.position) and _float_rows(s.velocity) and _float_rows(spin):
+        if float_rows(s.position) and float_rows(s.velocity) and float_rows(spin):
             # One compiled pass instead of three isfinite arrays and reductions.
-            finite = all_finite(s.position, s.velocity, spin)
+            check = (all_finite_shared if thread_count.parallel(self.threads, len(s))
+                     else all_finite)
+            finite = check(s.position, s.velocity, spin)
         else:
             finite = bool(np.isfinite(s.position).all() and np.isfinite(s.velocity).all()
                           and np.isfinite(spin).all())

@@ -50,6 +50,7 @@ from .separation_kernels import pay_for_lift, project_overlaps, WallBounds
 from ...model.effects import Walls
 from ...model.energy import lift
 from ...step.pipeline import Stage, StepContext
+from ...step.threads import parallel
 from ...step.step_kernels import particle_arrays
 from ..detection.narrowphase_kernels import ContactArrays
 from ...model.tunables import GRAVITY_PASSES
@@ -150,7 +151,8 @@ class SeparationStage(Stage):
         norm = float(np.linalg.norm(g))
         up = (0.0, 0.0, 1.0) if norm == 0.0 else tuple(float(x) for x in -g / norm)
         project_overlaps(particles, np.ascontiguousarray(s.dynamic, dtype=np.bool_), contacts,
-                         bounds, self._floors(bounds, gravity), up, passes, hold, passes > 1)
+                         bounds, self._floors(bounds, gravity), up, passes, hold, passes > 1,
+                         parallel(ctx.threads, len(s)))
         if particles.position is not s.position:
             s.position[...] = particles.position
 

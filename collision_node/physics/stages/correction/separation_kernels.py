@@ -15,7 +15,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ...step import numba_cache  # noqa: F401,I100 (chooses numba's cache directory first)
-from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
+from numba import njit, prange  # noqa: E402,I100 (after the cache directory is chosen)
 
 from ...law.primitives import dot3, line_of_action  # noqa: E402
 from ...step.step_kernels import (ParticleArrays, spread_levels, union_root,  # noqa: E402
@@ -41,8 +41,8 @@ class ProjectionWork(NamedTuple):
     """Buffers of one projection pass (reused by every pass)."""
 
     push: np.ndarray            # (m, 2) each pair's push of its first and second, m
-    total: np.ndarray           # (n, 3) sum of each particle's pushes, m
-    moves: np.ndarray           # (n,) how many pushes move each particle
+    total: np.ndarray           # (n, 3) sum of each particle's pushes, m (rows of pairs)
+    moves: np.ndarray           # (n,) how many pushes move each particle (rows of pairs)
 
 
 @njit(cache=True, inline='always')
@@ -82,10 +82,14 @@ def _separate_pass(particles, contacts, active, hold, walls, work):
     pair_first, pair_second = contacts.first, contacts.second
     normal, penetration = contacts.normal, contacts.penetration
     push, total, moves = work.push, work.total, work.moves
-    n, m = position.shape[0], pair_first.size
-    for p in range(n):
-        total[p, 0] = total[p, 1] = total[p, 2] = 0.0
-        moves[p] = 0.0
+    m = pair_first.size
+    # Only the particles of active pairs are summed and moved: their rows are
+    # cleared here (the rest of ``total`` and ``moves`` is never read).
+    for k in range(m):
+        if active[k]:
+            for p in (pair_first[k], pair_second[k]):
+                total[p, 0] = total[p, 1] = total[p, 2] = 0.0
+                moves[p] = 0.0
     for k in range(m):
         if not active[k]:
             continue
@@ -119,11 +123,14 @@ def _separate_pass(particles, contacts, active, hold, walls, work):
             total[b, 0] += -(f * normal[k, 0])
             total[b, 1] += -(f * normal[k, 1])
             total[b, 2] += -(f * normal[k, 2])
-    for p in range(n):
-        if moves[p] > 0.0:
-            position[p, 0] += total[p, 0] / moves[p]
-            position[p, 1] += total[p, 1] / moves[p]
-            position[p, 2] += total[p, 2] / moves[p]
+    for k in range(m):
+        if active[k]:
+            for p in (pair_first[k], pair_second[k]):
+                if moves[p] > 0.0:
+                    position[p, 0] += total[p, 0] / moves[p]
+                    position[p, 1] += total[p, 1] / moves[p]
+                    position[p, 2] += total[p, 2] / moves[p]
+                    moves[p] = 0.0       # moved once
 
 
 @njit(cache=True)
@@ -362,10 +369,29 @@ def _separate_in_turn(particles, contacts, order, level, walls, up):
     return any_overlap
 
 
+@njit(cache=True, nogil=True, parallel=True)
+def _clamp_inside_shared(position, radius, dynamic, walls):
+    """``_clamp_inside`` with the rows on the threads (a particle's planes in the same order)."""
+    for p in prange(position.shape[0]):
+        if not dynamic[p]:
+            continue
+        for q in range(walls.plane_axis.size):
+            axis, plane = walls.plane_axis[q], walls.plane_value[q]
+            inward = walls.plane_inward[q]
+            if inward * (position[p, axis] - plane) < radius[p]:
+                position[p, axis] = plane + inward * radius[p]
+
+
 @njit(cache=True)
-def _clamp_inside(particles, dynamic, walls):
-    """Place dynamic particles found past a wall plane back on it, plane after plane."""
+def _clamp_inside(particles, dynamic, walls, shared):
+    """Place dynamic particles found past a wall plane back on it, plane after plane.
+
+    ``shared``: the particles on the threads (each one's result is its own).
+    """
     position, radius = particles.position, particles.radius
+    if shared:
+        _clamp_inside_shared(position, radius, dynamic, walls)
+        return
     for q in range(walls.plane_axis.size):
         axis, plane, inward = walls.plane_axis[q], walls.plane_value[q], walls.plane_inward[q]
         for p in range(position.shape[0]):
@@ -374,7 +400,8 @@ def _clamp_inside(particles, dynamic, walls):
 
 
 @njit(cache=True, nogil=True)
-def project_overlaps(particles, dynamic, contacts, walls, floors, up, passes, hold, in_turn):
+def project_overlaps(particles, dynamic, contacts, walls, floors, up, passes, hold, in_turn,
+                     shared):
     """Run the separation stage's projection on ``particles.position`` in place.
 
     ``passes`` Jacobi passes: the first on the narrowphase's normals and
@@ -386,7 +413,8 @@ def project_overlaps(particles, dynamic, contacts, walls, floors, up, passes, ho
     gravity, and ``up`` the unit vector against it (any unit vector without
     gravity). ``in_turn`` (under gravity): Gauss-Seidel passes instead
     (``_separate_in_turn``), the pairs nearest a support first, stopping
-    early once no pair overlaps.
+    early once no pair overlaps. ``shared``: the wall clamps run on the
+    threads (the same positions).
     """
     position, velocity, radius = particles.position, particles.velocity, particles.radius
     pair_first, pair_second = contacts.first, contacts.second
@@ -398,7 +426,7 @@ def project_overlaps(particles, dynamic, contacts, walls, floors, up, passes, ho
             overlapped = (_separate_in_turn(particles, contacts, order, level, walls, up)
                           if m else False)
             if walls.present:
-                _clamp_inside(particles, dynamic, walls)
+                _clamp_inside(particles, dynamic, walls, shared)
             if not overlapped:
                 break
         return
@@ -408,7 +436,7 @@ def project_overlaps(particles, dynamic, contacts, walls, floors, up, passes, ho
     active = np.empty(m, dtype=np.bool_)
     for k in range(m):
         active[k] = penetration[k] > 0.0
-    work = ProjectionWork(np.zeros((m, 2)), np.zeros((n, 3)), np.zeros(n))
+    work = ProjectionWork(np.zeros((m, 2)), np.empty((n, 3)), np.empty(n))
     for step in range(passes):
         if m:
             if step > 0:
@@ -427,7 +455,7 @@ def project_overlaps(particles, dynamic, contacts, walls, floors, up, passes, ho
                     return
             _separate_pass(particles, current, active, hold, walls, work)
         if walls.present:
-            _clamp_inside(particles, dynamic, walls)
+            _clamp_inside(particles, dynamic, walls, shared)
 
 
 @njit(cache=True, nogil=True)
@@ -511,7 +539,7 @@ def warm_up() -> None:
     start = particles.position.copy()
     for in_turn in (False, True):
         project_overlaps(particles, dynamic, contacts, walls, np.ones(1, dtype=np.bool_),
-                         (0.0, 1.0, 0.0), 2, True, in_turn)
+                         (0.0, 1.0, 0.0), 2, True, in_turn, False)
     pay_for_lift(particles, dynamic, pair_first, pair_second, start, np.ones(2), np.zeros(2))
 
 

@@ -134,7 +134,8 @@ def _search(position: np.ndarray, reach: np.ndarray,
     threads may share a sphere search (the same pairs for any count).
     """
     reach = np.ascontiguousarray(reach, dtype=np.float64)
-    grid = grid_kernels.make_grid(position, reach, size_classes(reach))
+    grid = grid_kernels.make_grid(position, reach, size_classes(reach),
+                                  parallel(threads, reach.shape[0]))
     if paths is None and parallel(threads, reach.shape[0]):
         return grid_kernels.grid_pairs_shared(reach, grid, _limit()), grid
     motion = _still()
@@ -229,6 +230,18 @@ def check_pair_budget(position: np.ndarray, radius: np.ndarray, velocity: np.nda
     if n * (n - 1) // 2 <= MAX_PAIRS or (added is not None and added * n <= MAX_PAIRS // 2):
         return
     BroadphaseStage().find(position, radius, velocity, inv_mass, dt, extra)
+
+
+def _rms_speed(velocity: np.ndarray, dynamic: np.ndarray) -> float:
+    """Return the root mean square speed of the dynamic particles (0 with none).
+
+    Each row's v . v is the same sum whether the rows are picked first or
+    after, so the squares are taken over all rows, without copying them.
+    """
+    if not dynamic.any():
+        return 0.0
+    squares = np.einsum('ij,ij->i', velocity, velocity)
+    return float(np.sqrt(np.mean(squares if dynamic.all() else squares[dynamic])))
 
 
 def _upper_median(values: np.ndarray) -> float:
@@ -340,9 +353,10 @@ class BroadphaseStage(Stage):
 
     def _movers(self, position: np.ndarray, extra: np.ndarray) -> np.ndarray:
         """Return the particles whose displacement plus allowance exceeds skin/2."""
-        return grid_kernels.movers(grid_kernels.as_points(position), self._built_position,
-                                   np.ascontiguousarray(extra, dtype=np.float64),
-                                   self._half_skin)
+        find = (grid_kernels.movers_shared if parallel(self.threads, position.shape[0])
+                else grid_kernels.movers)
+        return find(grid_kernels.as_points(position), self._built_position,
+                    np.ascontiguousarray(extra, dtype=np.float64), self._half_skin)
 
     def _list_matches(self, position: np.ndarray, radius: np.ndarray) -> bool:
         """Return whether the list was built for these particles (count and radii)."""
@@ -358,10 +372,7 @@ class BroadphaseStage(Stage):
             # The list is tied to this radius array: its median is computed once.
             self._median_radius, self._median_of = _upper_median(radius), radius
         median_radius = self._median_radius
-        dynamic = inv_mass > 0.0
-        rms_speed = float(np.sqrt(np.mean(np.einsum('ij,ij->i', velocity[dynamic],
-                                                    velocity[dynamic])))) \
-            if dynamic.any() else 0.0
+        rms_speed = _rms_speed(velocity, inv_mass > 0.0)
         skin = min(SKIN_MAX_RADII * median_radius,
                    max(SKIN_STEPS * dt * rms_speed, SKIN_MIN_RADII * median_radius))
         # Wide enough that a standing allowance (speculative contacts) leaves

@@ -95,54 +95,166 @@ def _dense_bucket(cx, cy, cz, lx, ly, lz, nx, ny):
     return ((cz - lz) * ny + (cy - ly)) * nx + (cx - lx)
 
 
+@njit(cache=True)
+def _extent_in(position, begin, end, lowest, highest, row):
+    """Write the least and greatest coordinate per axis of rows begin .. end - 1 to ``row``."""
+    for d in range(3):
+        lo, hi = position[begin, d], position[begin, d]
+        for p in range(begin + 1, end):
+            x = position[p, d]
+            if x < lo:
+                lo = x
+            elif x > hi:
+                hi = x
+        lowest[row, d], highest[row, d] = lo, hi
+
+
+@njit(cache=True)
+def _cells_in(position, order, corner, width, begin, end, own_cell, low, high, row):
+    """Write the cells of members begin .. end - 1 and their least and greatest to ``row``."""
+    for d in range(3):
+        low[row, d], high[row, d] = np.iinfo(np.int64).max, np.iinfo(np.int64).min
+    for m in range(begin, end):
+        p = order[m]
+        for d in range(3):
+            c = np.int64(np.floor((position[p, d] - corner[d]) / width))
+            own_cell[m, d] = c
+            low[row, d] = min(low[row, d], c)
+            high[row, d] = max(high[row, d], c)
+
+
+@njit(cache=True)
+def _buckets_in(own_cell, dense, low, nx, ny, mask, begin, end, own_bucket):
+    """Write the bucket of members begin .. end - 1 (dense: by cell; else hashed)."""
+    for m in range(begin, end):
+        if dense:
+            own_bucket[m] = _dense_bucket(own_cell[m, 0], own_cell[m, 1], own_cell[m, 2],
+                                          low[0], low[1], low[2], nx, ny)
+        else:
+            own_bucket[m] = _hash(own_cell[m, 0], own_cell[m, 1], own_cell[m, 2], mask)
+
+
+@njit(cache=True)
+def _place_in(position, order, own_cell, at, begin, end, item, item_cell, item_position):
+    """Copy members begin .. end - 1 to their rows ``at`` of the grid's item arrays."""
+    for m in range(begin, end):
+        p = order[m]
+        item[at[m]] = p
+        for d in range(3):
+            item_cell[at[m], d] = own_cell[m, d]
+            item_position[at[m], d] = position[p, d]
+
+
+class GridWork(NamedTuple):
+    """``build_grid``'s per-particle arrays and each block's extremes (one row per block)."""
+
+    lowest: np.ndarray          # (blocks, 3) least coordinate per block, m
+    highest: np.ndarray         # (blocks, 3) greatest coordinate per block, m
+    block_low: np.ndarray       # (blocks, 3) least cell per block
+    block_high: np.ndarray      # (blocks, 3) greatest cell per block
+    own_cell: np.ndarray        # (n, 3) each member's cell
+    own_bucket: np.ndarray      # (n,) each member's bucket
+    at: np.ndarray              # (n,) each member's row among the items
+    item: np.ndarray            # the grid's item arrays, filled by placing
+    item_cell: np.ndarray
+    item_position: np.ndarray
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _blocks_shared(task, position, order, corner, width, begin, end, work, table):
+    """Run one of ``build_grid``'s loops over members begin .. end - 1 in blocks on the threads.
+
+    ``task`` 0: extents (``_extent_in``), 1: cells (``_cells_in``), 2:
+    buckets (``_buckets_in``, ``table`` is (dense, low cell, nx, ny, mask)),
+    3: placing (``_place_in``). Block b writes row b of the ``GridWork``'s
+    extremes (combined in block order by the caller).
+    """
+    blocks = (end - begin + PARALLEL_BLOCK_ITEMS - 1) // PARALLEL_BLOCK_ITEMS
+    dense, low, nx, ny, mask = table
+    for b in prange(blocks):
+        first = begin + b * PARALLEL_BLOCK_ITEMS
+        last = min(first + PARALLEL_BLOCK_ITEMS, end)
+        if task == 0:
+            _extent_in(position, first, last, work.lowest, work.highest, b)
+        elif task == 1:
+            _cells_in(position, order, corner, width, first, last, work.own_cell,
+                      work.block_low, work.block_high, b)
+        elif task == 2:
+            _buckets_in(work.own_cell, dense, low, nx, ny, mask, first, last,
+                        work.own_bucket)
+        else:
+            _place_in(position, order, work.own_cell, work.at, first, last, work.item,
+                      work.item_cell, work.item_position)
+
+
+@njit(cache=True)
+def _least_greatest(lowest, highest, rows):
+    """Return the least of ``lowest`` and the greatest of ``highest`` over their first rows."""
+    lo, hi = lowest[0].copy(), highest[0].copy()
+    for r in range(1, rows):
+        for d in range(3):
+            lo[d] = min(lo[d], lowest[r, d])
+            hi[d] = max(hi[d], highest[r, d])
+    return lo, hi
+
+
 @njit(cache=True, nogil=True)
-def build_grid(position, reach, order, class_start):
+def build_grid(position, reach, order, class_start, shared):
     """Return every class's grid (``Grid``).
 
     ``order`` lists the particles class by class (``class_start`` slices);
     within a class the items are sorted by bucket, in ``order``'s order. A
     class whose occupied box has at most DENSE_CELLS_PER_ITEM cells per
     particle gets a dense table (one bucket per cell, rows of cells along
-    x contiguous), any other a hashed one.
+    x contiguous), any other a hashed one. ``shared``: the per-particle
+    loops run in blocks on the threads (least and greatest are exact, and
+    the bucket counts stay in order: the same grid).
     """
     n = position.shape[0]
     classes = class_start.size - 1
-    corner = np.empty(3)
+    blocks = (n + PARALLEL_BLOCK_ITEMS - 1) // PARALLEL_BLOCK_ITEMS if shared else 1
+    work = GridWork(np.empty((blocks, 3)), np.empty((blocks, 3)),
+                    np.empty((blocks, 3), dtype=np.int64), np.empty((blocks, 3), dtype=np.int64),
+                    np.empty((n, 3), dtype=np.int64), np.empty(n, dtype=np.int64),
+                    np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64),
+                    np.empty((n, 3), dtype=np.int64), np.empty((n, 3)))
+    own_cell, own_bucket, at = work.own_cell, work.own_bucket, work.at
+    no_table = (False, np.zeros(3, dtype=np.int64), np.int64(0), np.int64(0), np.int64(0))
+    if shared:
+        _blocks_shared(0, position, order, np.zeros(3), 1.0, 0, n, work, no_table)
+    else:
+        _extent_in(position, 0, n, work.lowest, work.highest, 0)
+    corner, high_corner = _least_greatest(work.lowest, work.highest, blocks)
     extent = 0.0
     for d in range(3):
-        lo, hi = position[0, d], position[0, d]
-        for p in range(1, n):
-            x = position[p, d]
-            if x < lo:
-                lo = x
-            elif x > hi:
-                hi = x
-        corner[d] = lo
-        extent = max(extent, hi - lo)
+        extent = max(extent, high_corner[d] - corner[d])
     cell, class_reach = np.empty(classes), np.empty(classes)
     low = np.empty((classes, 3), dtype=np.int64)
     high = np.empty((classes, 3), dtype=np.int64)
     dense = np.zeros(classes, dtype=np.bool_)
     table_start = np.zeros(classes + 1, dtype=np.int64)
-    own_cell = np.empty((n, 3), dtype=np.int64)
     for k in range(classes):
+        begin, end = class_start[k], class_start[k + 1]
         largest = 0.0
-        for m in range(class_start[k], class_start[k + 1]):
+        for m in range(begin, end):
             largest = max(largest, reach[order[m]])
         class_reach[k] = largest
         width = max(CELL_REACHES * largest * (1.0 + CELL_MARGIN),
                     extent / MAX_CELLS_PER_AXIS)
         cell[k] = width if width > 0.0 else 1.0
+        if shared:
+            _blocks_shared(1, position, order, corner, cell[k], begin, end, work, no_table)
+            rows = (end - begin + PARALLEL_BLOCK_ITEMS - 1) // PARALLEL_BLOCK_ITEMS
+        else:
+            _cells_in(position, order, corner, cell[k], begin, end, own_cell, work.block_low,
+                      work.block_high, 0)
+            rows = 1
         for d in range(3):
-            low[k, d], high[k, d] = np.iinfo(np.int64).max, np.iinfo(np.int64).min
-        for m in range(class_start[k], class_start[k + 1]):
-            p = order[m]
-            for d in range(3):
-                c = np.int64(np.floor((position[p, d] - corner[d]) / cell[k]))
-                own_cell[m, d] = c
-                low[k, d] = min(low[k, d], c)
-                high[k, d] = max(high[k, d], c)
-        members = class_start[k + 1] - class_start[k]
+            low[k, d], high[k, d] = work.block_low[0, d], work.block_high[0, d]
+            for r in range(1, rows):
+                low[k, d] = min(low[k, d], work.block_low[r, d])
+                high[k, d] = max(high[k, d], work.block_high[r, d])
+        members = end - begin
         cells = 1.0
         for d in range(3):
             cells *= high[k, d] - low[k, d] + 1.0
@@ -155,39 +267,35 @@ def build_grid(position, reach, order, class_start):
                 size *= 2
         table_start[k + 1] = table_start[k] + size + 1
     bucket = np.zeros(table_start[classes], dtype=np.int64)
-    item = np.empty(n, dtype=np.int64)
-    item_cell = np.empty((n, 3), dtype=np.int64)
-    item_position = np.empty((n, 3))
-    own_bucket = np.empty(n, dtype=np.int64)
     for k in range(classes):
+        begin, end = class_start[k], class_start[k + 1]
         base, mask = table_start[k], table_start[k + 1] - table_start[k] - 2
         nx, ny = high[k, 0] - low[k, 0] + 1, high[k, 1] - low[k, 1] + 1
-        for m in range(class_start[k], class_start[k + 1]):
-            if dense[k]:
-                b = _dense_bucket(own_cell[m, 0], own_cell[m, 1], own_cell[m, 2], low[k, 0],
-                                  low[k, 1], low[k, 2], nx, ny)
-            else:
-                b = _hash(own_cell[m, 0], own_cell[m, 1], own_cell[m, 2], mask)
-            own_bucket[m] = b
-            bucket[base + b + 1] += 1
+        if shared:
+            _blocks_shared(2, position, order, corner, 1.0, begin, end, work,
+                           (dense[k], low[k].copy(), nx, ny, mask))
+        else:
+            _buckets_in(own_cell, dense[k], low[k], nx, ny, mask, begin, end, own_bucket)
+        for m in range(begin, end):
+            bucket[base + own_bucket[m] + 1] += 1
         for b in range(base + 1, table_start[k + 1]):
             bucket[b] += bucket[b - 1]
         # bucket[base + b] is now where bucket b starts (relative to the class).
-        for m in range(class_start[k], class_start[k + 1]):
+        for m in range(begin, end):
             b = base + own_bucket[m]
-            at = class_start[k] + bucket[b]
+            at[m] = begin + bucket[b]
             bucket[b] += 1
-            p = order[m]
-            item[at] = p
-            for d in range(3):
-                item_cell[at, d] = own_cell[m, d]
-                item_position[at, d] = position[p, d]
+        if shared:
+            _blocks_shared(3, position, order, corner, 1.0, begin, end, work, no_table)
+        else:
+            _place_in(position, order, own_cell, at, begin, end, work.item, work.item_cell,
+                      work.item_position)
         # Filling moved each start to the next bucket's: shift back by one.
         for b in range(table_start[k + 1] - 1, base, -1):
-            bucket[b] = bucket[b - 1] + class_start[k]
-        bucket[base] = class_start[k]
+            bucket[b] = bucket[b - 1] + begin
+        bucket[base] = begin
     return Grid(corner, cell, class_reach, class_start, low, high, dense, table_start, bucket,
-                item, item_cell, item_position)
+                work.item, work.item_cell, work.item_position)
 
 
 @njit(cache=True, inline='always')
@@ -709,12 +817,49 @@ def movers(position, built, extra, half_skin):
     out = np.empty(n, dtype=np.int64)
     count = 0
     for p in range(n):
-        dx, dy, dz = position[p, 0] - built[p, 0], position[p, 1] - built[p, 1], \
-            position[p, 2] - built[p, 2]
-        if math.sqrt(dot3(dx, dy, dz, dx, dy, dz)) + extra[p] > half_skin:
+        if _moved(position, built, extra, half_skin, p):
             out[count] = p
             count += 1
     return out[:count]
+
+
+@njit(cache=True, inline='always')
+def _moved(position, built, extra, half_skin, p):
+    """Say whether particle p's |position - built| + extra exceeds half_skin."""
+    dx, dy, dz = position[p, 0] - built[p, 0], position[p, 1] - built[p, 1], \
+        position[p, 2] - built[p, 2]
+    return math.sqrt(dot3(dx, dy, dz, dx, dy, dz)) + extra[p] > half_skin
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def movers_shared(position, built, extra, half_skin):
+    """Return ``movers``' list, the particles tested in blocks on the threads.
+
+    Each block marks and counts its movers in one pass over the positions;
+    the counts are summed in block order and each block lists its own
+    marked particles in its own slice: the serial list for any thread count.
+    """
+    n = position.shape[0]
+    blocks = (n + PARALLEL_BLOCK_ITEMS - 1) // PARALLEL_BLOCK_ITEMS
+    offset = np.zeros(blocks + 1, dtype=np.int64)
+    moved = np.empty(n, dtype=np.bool_)
+    for block in prange(blocks):
+        count = 0
+        for p in range(block * PARALLEL_BLOCK_ITEMS, min((block + 1) * PARALLEL_BLOCK_ITEMS, n)):
+            moved[p] = _moved(position, built, extra, half_skin, p)
+            if moved[p]:
+                count += 1
+        offset[block + 1] = count
+    for block in range(blocks):
+        offset[block + 1] += offset[block]
+    out = np.empty(offset[blocks], dtype=np.int64)
+    for block in prange(blocks):
+        at = offset[block]
+        for p in range(block * PARALLEL_BLOCK_ITEMS, min((block + 1) * PARALLEL_BLOCK_ITEMS, n)):
+            if moved[p]:
+                out[at] = p
+                at += 1
+    return out
 
 
 @njit(cache=True, nogil=True)
@@ -764,14 +909,18 @@ def as_points(position: np.ndarray) -> np.ndarray:
     return points
 
 
-def make_grid(position: np.ndarray, reach: np.ndarray, classes: list) -> Grid:
-    """Build the grid of every size class (``classes``: index arrays, smallest reach first)."""
+def make_grid(position: np.ndarray, reach: np.ndarray, classes: list,
+              shared: bool = False) -> Grid:
+    """Build the grid of every size class (``classes``: index arrays, smallest reach first).
+
+    ``shared``: the per-particle loops on the threads (the same grid).
+    """
     order = np.concatenate(classes).astype(np.int64) if len(classes) > 1 else \
         np.ascontiguousarray(classes[0], dtype=np.int64)
     class_start = np.zeros(len(classes) + 1, dtype=np.int64)
     class_start[1:] = np.cumsum([members.size for members in classes])
     return build_grid(as_points(position), np.ascontiguousarray(reach, dtype=np.float64),
-                      order, class_start)
+                      order, class_start, shared)
 
 
 def warm_up() -> None:
@@ -785,6 +934,7 @@ def warm_up() -> None:
     moving = PathMotion(True, np.ones((3, 3)), np.ones(3), np.zeros(1, dtype=np.int64))
     grid_pairs(reach, grid, limit, moving)
     gas = make_grid(position[:2], reach[:2], [np.array([0, 1])])
+    make_grid(position, reach, [np.array([0, 1]), np.array([2])], True)
     grid_pairs(reach[:2], gas, limit, still)
     grid_pairs_shared(reach[:2], gas, limit)
     grid_pairs_shared(reach, grid, limit)
@@ -793,9 +943,10 @@ def warm_up() -> None:
     keys = np.array([1], dtype=np.int64)
     merge_pairs(keys, Pairs(keys // 3, keys % 3), near.pairs, 3)
     movers(position, position, np.zeros(3), 0.5)
+    movers_shared(position, position, np.zeros(3), 0.5)
 
 
 def kernels() -> list:
     """Return the compiled kernels of this module (for the cache check)."""
-    return [build_grid, grid_pairs, grid_pairs_shared, grid_query, movers, merge_pairs,
-            sort_pairs]
+    return [build_grid, grid_pairs, grid_pairs_shared, grid_query, movers, movers_shared,
+            merge_pairs, sort_pairs]

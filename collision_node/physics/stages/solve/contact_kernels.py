@@ -36,8 +36,8 @@ from ...law.primitives import (apply_pair_normal, apply_tangential, apply_wall_n
                                push_pair, push_wall, RESTITUTION, spin_factor, STICK_FACTOR,
                                tangential_slip, WALLS)
 from ...model.tunables import (COLD_START_SHARE, COLD_START_SWEEPS, MIN_SUPPORT_ALIGNMENT,
-                               PARALLEL_MIN_BATCH, PARALLEL_SOLVE_BLOCK, SUPPORT_SLOP,
-                               WALL_SLOP)
+                               PARALLEL_MIN_BATCH, PARALLEL_MIN_ITEMS, PARALLEL_SOLVE_BLOCK,
+                               SUPPORT_SLOP, WALL_SLOP)
 from ...step.step_kernels import incident, spread_levels, UNSUPPORTED
 from .wall_kernels import WallPlanes
 
@@ -709,12 +709,64 @@ def find_wall_contacts(position, radius, dynamic, planes, slop, ahead=0.0):
                 index[k] = p
                 k += 1
         start[q + 1] = k
+    return _with_planes(planes, start, index[:k].copy())
+
+
+@njit(cache=True)
+def _with_planes(planes, start, index):
+    """Return (start, index, axis, inward): each plane's run of ``index``, its axis and side."""
+    k = index.size
     axes = np.empty(k, dtype=np.int64)
     inwards = np.empty(k)
-    for q in range(count):
+    for q in range(planes.axis.size):
         for c in range(start[q], start[q + 1]):
             axes[c], inwards[c] = planes.axis[q], planes.inward[q]
-    return start, index[:k].copy(), axes, inwards
+    return start, index, axes, inwards
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _touch_masks(position, radius, dynamic, planes, slop, ahead, touch):
+    """Set bit q of touch[p] where particle p touches plane q (``find_wall_contacts``' test)."""
+    for p in prange(position.shape[0]):
+        bits = 0
+        for q in range(planes.axis.size):
+            gap = planes.inward[q] * (position[p, planes.axis[q]] - planes.value[q]) - radius[p]
+            if dynamic[p] and gap <= slop * radius[p] + planes.ulps[q] + ahead:
+                bits |= 1 << q
+        touch[p] = bits
+
+
+@njit(cache=True)
+def find_wall_contacts_shared(position, radius, dynamic, planes, slop, ahead):
+    """Return ``find_wall_contacts``' result, the particles' tests on the threads.
+
+    Each particle's planes are tested on the threads into a bit mask; the
+    touching particles are then listed plane by plane in particle order,
+    as the serial loop lists them.
+    """
+    n, count = position.shape[0], planes.axis.size
+    touch = np.empty(n, dtype=np.int64)
+    _touch_masks(position, radius, dynamic, planes, slop, ahead, touch)
+    near = 0
+    for p in range(n):
+        if touch[p] != 0:
+            near += 1
+    touching = np.empty(near, dtype=np.int64)
+    near = 0
+    for p in range(n):
+        if touch[p] != 0:
+            touching[near] = p
+            near += 1
+    start = np.zeros(count + 1, dtype=np.int64)
+    index = np.empty(near * count, dtype=np.int64)
+    k = 0
+    for q in range(count):
+        for s in range(near):
+            if touch[touching[s]] & (1 << q):
+                index[k] = touching[s]
+                k += 1
+        start[q + 1] = k
+    return _with_planes(planes, start, index[:k].copy())
 
 
 @njit(cache=True)
@@ -775,8 +827,13 @@ def _wall_contacts(radius, dynamic, position, planes, coefficients, settings):
     a plane (speculative: their gap beyond the touching slop is their
     allowance times dt).
     """
-    start, particle, axis, inward = find_wall_contacts(
-        position, radius, dynamic, planes, WALL_SLOP + settings.margin, settings.ahead)
+    slop = WALL_SLOP + settings.margin
+    if settings.threads > 1 and radius.size >= PARALLEL_MIN_ITEMS:
+        start, particle, axis, inward = find_wall_contacts_shared(
+            position, radius, dynamic, planes, slop, settings.ahead)
+    else:
+        start, particle, axis, inward = find_wall_contacts(
+            position, radius, dynamic, planes, slop, settings.ahead)
     k = particle.size
     own_e, own_mu = coefficients.own_restitution, coefficients.own_friction
     has_e, has_mu = own_e.size > 0, own_mu.size > 0
@@ -1096,7 +1153,9 @@ def _solve_step(bodies, position, ids, contacts, planes, coefficients, settings,
     warm = n if settings.accumulate else 0
     marks = ParticleMarks(dynamic, np.zeros(n, dtype=np.bool_), np.zeros(n),
                           np.zeros((warm, 3)), np.zeros(warm, dtype=np.bool_))
-    losses = Losses(np.zeros((len(EFFECTS) + 1, n)), np.zeros(len(EFFECTS)))
+    # Per-particle rows are only added to, and only BOOKED is read back (filled
+    # from ``booked`` first when the step books per particle): no zeroing.
+    losses = Losses(np.empty((len(EFFECTS) + 1, n)), np.zeros(len(EFFECTS)))
     for p in range(booked.size):
         losses.per_particle[BOOKED, p] = booked[p]
     sweeps = solve_contacts(bodies, marks, pairs, walls, pair_impulses, wall_impulses,

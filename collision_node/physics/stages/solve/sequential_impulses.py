@@ -173,6 +173,8 @@ class SequentialImpulseStage(Stage):
         self.cache = ContactCache()
         # The wall planes as the kernel takes them, built on first use.
         self._plane_arrays: Optional[tuple] = None
+        # The spin the kernel gets in a world without spin: zeros, never changed.
+        self._no_spin = np.zeros((0, 3))
         # Sweeps run, summed over the solves, and in the last solve.
         self.sweeps = self.solves = self.last_sweeps = 0
 
@@ -212,8 +214,11 @@ class SequentialImpulseStage(Stage):
         # The kernel works on contiguous float arrays; write back if copies were made.
         velocity = np.ascontiguousarray(state.velocity, dtype=float)
         spin = state.angular_velocity
-        # Without spin (no friction) the kernel gets a scratch array it never reads.
-        angular = (np.zeros((n, 3)) if spin is None
+        # Without spin (no friction) the kernel gets a zero array it never reads
+        # or writes, kept from step to step.
+        if spin is None and self._no_spin.shape[0] != n:
+            self._no_spin = np.zeros((n, 3))
+        angular = (self._no_spin if spin is None
                    else np.ascontiguousarray(spin, dtype=float))
         # Colour by colour with visit='colours', and in any solve large enough to
         # share among threads, at every thread count (one result for all).

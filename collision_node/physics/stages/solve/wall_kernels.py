@@ -20,7 +20,7 @@ import numpy as np
 from typing import NamedTuple
 
 from ...step import numba_cache  # noqa: F401,I100 (chooses numba's cache directory first)
-from numba import njit  # noqa: E402,I100 (after the cache directory is chosen)
+from numba import njit, prange  # noqa: E402,I100 (after the cache directory is chosen)
 
 from ...law.primitives import Bodies, combined_coefficient, pair_friction  # noqa: E402
 
@@ -79,21 +79,33 @@ def _grow(floats, ints, count):
 
 
 @njit(cache=True, nogil=True)
-def wall_pass(bodies, position, planes, coefficients, motion):
+def wall_pass(bodies, position, planes, coefficients, motion, shared):
     """Reflect every particle found past a plane (``_wall_pass``); return ``WallRows``.
 
     ``bodies``, ``planes``, ``coefficients`` and ``motion`` are the records
     (``Bodies``, ``WallPlanes``, ``WallCoefficients``, ``WallMotion``) as
     plain tuples, ``tuple(record)``: numba types a plain tuple argument in
     its compiled dispatcher but a NamedTuple in Python, tens of
-    microseconds a call.
+    microseconds a call. ``shared``: find the particles past a plane on the
+    threads (the same rows).
     """
     return _wall_pass(Bodies(*bodies), position, WallPlanes(*planes),
-                      WallCoefficients(*coefficients), WallMotion(*motion))
+                      WallCoefficients(*coefficients), WallMotion(*motion), shared)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _mark_past_shared(position, radius, planes, past):
+    """Set past[p]: particle p is past any plane (``_wall_pass``'s test), rows on the threads."""
+    axis, value, inward = planes.axis, planes.value, planes.inward
+    for p in prange(position.shape[0]):
+        beyond = False
+        for k in range(axis.size):
+            beyond |= inward[k] * (position[p, axis[k]] - value[k]) - radius[p] < 0.0
+        past[p] = beyond
 
 
 @njit(cache=True)
-def _wall_pass(bodies, position, planes, coefficients, motion):
+def _wall_pass(bodies, position, planes, coefficients, motion, shared):
     """Reflect every particle found past a plane, in place; return the rows of what happened.
 
     ``gravity`` counts only with ``has_gravity`` (else g_n = 0.0). Returns
@@ -117,10 +129,13 @@ def _wall_pass(bodies, position, planes, coefficients, motion):
     # the same test as below). A particle past none stays so: a plane moves
     # only its own particles, along its own axis.
     past = np.zeros(n, dtype=np.bool_)
-    for k in range(plane_count):
-        ax, plane, sign = axis[k], value[k], inward[k]
-        for p in range(n):
-            past[p] |= sign * (position[p, ax] - plane) - radius[p] < 0.0
+    if shared:
+        _mark_past_shared(position, radius, planes, past)
+    else:
+        for k in range(plane_count):
+            ax, plane, sign = axis[k], value[k], inward[k]
+            for p in range(n):
+                past[p] |= sign * (position[p, ax] - plane) - radius[p] < 0.0
     for p in range(n):
         if not past[p] or not inv_mass[p] > 0.0:      # static (``ParticleState.dynamic``)
             continue
@@ -214,7 +229,7 @@ def warm_up() -> None:
     bodies = Bodies(velocity, np.zeros((2, 3)), np.ones(2), np.full(2, 0.1))
     coefficients = WallCoefficients(none, 1.0, none, 0.5)
     motion = WallMotion(True, False, np.zeros(3), 0.01, 0.0, False)
-    wall_pass(tuple(bodies), position, tuple(planes), tuple(coefficients), tuple(motion))
+    wall_pass(tuple(bodies), position, tuple(planes), tuple(coefficients), tuple(motion), False)
 
 
 def kernels() -> list:

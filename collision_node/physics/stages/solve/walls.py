@@ -40,6 +40,7 @@ from ...model.effects import Walls
 from ...model.impacts import WALL
 from ...model.tunables import WALL_ULPS
 from ...step.pipeline import Stage, StepContext
+from ...step.threads import parallel
 from .wall_kernels import (APPROACH, BACK, FRICTION_LOSS, NORMAL_IMPULSE, PARTICLE, POINT,
                            TANGENTIAL, wall_pass, WallCoefficients, WallMotion, WallPlanes,
                            WALLS_LOSS)
@@ -94,7 +95,8 @@ class WallStage(Stage):
                             float(self._per_dt[3]), ctx.dimensions == 2)
         # The records as plain tuples: the compiled dispatcher types those fast.
         floats, ints, group_start = wall_pass(tuple(bodies), s.position, planes[0],
-                                              tuple(coefficients), tuple(motion))
+                                              tuple(coefficients), tuple(motion),
+                                              parallel(ctx.threads, len(s)))
         if not ints.shape[0]:
             return
         # Book and record plane by plane, as the vectorised law does: the same
