@@ -281,6 +281,23 @@ MAX_COLORS = 32
 # uses) or the vectorised numpy law (the tests' reference).
 BACKENDS = ('kernel', 'numpy')
 
+# --- Memory (step/memory.py) ---------------------------------------------------------------------
+
+# Keep freed memory in the process for the next step (glibc's malloc;
+# default True): a step of a large world frees and allocates arrays of
+# every particle's size, and pages returned to the system fault again when
+# touched (3 to 5 ms a step after each broadphase rebuild of a 100,000-
+# particle gas here). False leaves the allocator's own policy.
+KEEP_FREED_MEMORY = True
+# Blocks up to this size come from the heap and are reused, not from a fresh
+# mmap returned on free (bytes, default 32 MiB, glibc's largest; glibc's own
+# default starts at 128 KiB).
+ALLOCATOR_MMAP_THRESHOLD = 32 * 2 ** 20
+# Free memory at the top of the heap is returned to the system only past this
+# (bytes, default 2 GiB - 1, the most mallopt takes: its value is a C int;
+# glibc's own 128 KiB). The process's resident memory stays near its peak.
+ALLOCATOR_TRIM_THRESHOLD = 2 ** 31 - 1
+
 # --- Threads (step/threads.py) -----------------------------------------------------------------
 
 # A kernel loop runs on several threads only over at least this many items

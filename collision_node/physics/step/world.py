@@ -21,6 +21,7 @@ from .plan import build_pipeline
 from ..stages.detection.broadphase import check_pair_budget, StepTooLarge, swept_allowance
 from ..stages.sleeping.sleep import asleep_count, sleepers_touching, wake_islands
 from .pipeline import StepContext, StepStats
+from .memory import keep_freed_memory
 from .step_kernels import all_finite, all_finite_shared, float_rows
 from . import threads as thread_count
 from .timing import StepProfile, build_profile
@@ -50,6 +51,7 @@ class World:
         self.scene = scene
         self.max_particles = max_particles
         self.threads = thread_count.resolve(threads)
+        keep_freed_memory()
         # Impacts are recorded only while asked for (record_impacts).
         self.impact_log: Optional[ImpactLog] = None
         if max_particles is not None and len(scene.initial) > max_particles:
