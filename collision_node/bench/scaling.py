@@ -8,9 +8,11 @@ steps (the first step loads the compiled code). It prints the wall ns per
 particle-step, the speed-up over one thread and the parallel efficiency
 (speed-up / threads), and whether the final state is bit-identical to the
 one-thread run's (it must be). The memory column is the process's peak
-resident memory while the case ran over what it held before, per
-particle, where the case raised the process's peak (else '-': an earlier,
-larger case set it).
+resident memory while the case ran over what it held before the first
+case, per particle, where the case raised the process's peak (else '-':
+an earlier, larger case set it). A stepping process keeps freed memory for
+reuse (``step/memory.py``), so memory an earlier case freed is counted
+against the case that reuses it: an upper bound for the case alone.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import os
 import resource
 import sys
 import time
-from typing import Callable
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -61,9 +63,15 @@ def _peak_bytes() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
 
-def time_case(make: Callable[[], object], threads: int, warmup: int, steps: int) -> dict:
-    """Step a fresh world of ``make()`` on ``threads``; return its timing and final digest."""
+def time_case(make: Callable[[], object], threads: int, warmup: int, steps: int,
+              baseline: Optional[int] = None) -> dict:
+    """Step a fresh world of ``make()`` on ``threads``; return its timing and final digest.
+
+    ``baseline``: the resident bytes its memory is counted over (None: now).
+    """
     before, peak_before = _resident_bytes(), _peak_bytes()
+    if baseline is not None:
+        before = baseline
     world = World(make(), threads=threads)
     world.step(warmup)
     start, cpu_start = time.perf_counter(), time.process_time()
@@ -126,6 +134,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     # Compiled (or loaded) before any case: a first start's compile is no case's time.
     compile_seconds = prepare()
+    baseline = _resident_bytes()
     load = os.getloadavg()
     print(f'Parallel step: {os.cpu_count()} cores, numba pool of {thread_count.available()} '
           'threads, load average '
@@ -140,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
     for label, make, warmup, steps in cases(args):
         base = None
         for count in counts:
-            row = time_case(make, count, warmup, steps)
+            row = time_case(make, count, warmup, steps, baseline)
             base = base or row
             same = row['digest'] == base['digest']
             identical &= same
