@@ -478,7 +478,14 @@ def sort_pairs(a, b, count, n):
         lo, hi = min(a[p], b[p]), max(a[p], b[p])
         first[fill[lo]], second[fill[lo]] = lo, hi
         fill[lo] += 1
-    for r in range(n):
+    _sort_rows(second, row, 0, n)
+    return Pairs(first, second)
+
+
+@njit(cache=True)
+def _sort_rows(second, row, begin, end):
+    """Sort ``second`` within each of rows begin .. end - 1 (row r: row[r] .. row[r + 1] - 1)."""
+    for r in range(begin, end):
         start, stop = row[r], row[r + 1]
         if stop - start > 32:
             second[start:stop] = np.sort(second[start:stop])
@@ -490,7 +497,71 @@ def sort_pairs(a, b, count, n):
                 second[t + 1] = second[t]
                 t -= 1
             second[t + 1] = value
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _sort_block_rows(out_a, out_b, offset, ends, n):
+    """Return the ``Pairs`` (min, max) of every block's rows, sorted by (i, j), on the threads.
+
+    Block b's pairs are rows offset[b] .. ends[b] - 1 of (out_a, out_b). A
+    parallel radix sort: each block counts its pairs per range of
+    PARALLEL_BLOCK_ITEMS first particles, the counts are summed range by
+    range in block order, each block moves its pairs into its slots of
+    their range, and each range is then sorted on its own (a counting sort
+    by i, each row by j). The pairs are distinct, so their sorted order is
+    one: ``sort_pairs``' result for any thread count.
+    """
+    blocks = ends.size
+    ranges = (n + PARALLEL_BLOCK_ITEMS - 1) // PARALLEL_BLOCK_ITEMS
+    slots = np.zeros((blocks, ranges), dtype=np.int64)
+    for b in prange(blocks):
+        for p in range(offset[b], ends[b]):
+            slots[b, min(out_a[p], out_b[p]) // PARALLEL_BLOCK_ITEMS] += 1
+    range_start = np.zeros(ranges + 1, dtype=np.int64)
+    at = 0
+    for r in range(ranges):
+        range_start[r] = at
+        for b in range(blocks):
+            size = slots[b, r]
+            slots[b, r] = at
+            at += size
+    range_start[ranges] = at
+    low, high = np.empty(at, dtype=np.int64), np.empty(at, dtype=np.int64)
+    for b in prange(blocks):
+        _scatter_block(out_a, out_b, offset[b], ends[b], slots[b], low, high)
+    first, second = np.empty(at, dtype=np.int64), np.empty(at, dtype=np.int64)
+    for r in prange(ranges):
+        _sort_range(low, high, range_start[r], range_start[r + 1], r * PARALLEL_BLOCK_ITEMS,
+                    min((r + 1) * PARALLEL_BLOCK_ITEMS, n), first, second)
     return Pairs(first, second)
+
+
+@njit(cache=True)
+def _scatter_block(out_a, out_b, begin, end, slot, low, high):
+    """Move rows begin .. end - 1 as (min, max) to the next ``slot`` of their range."""
+    for p in range(begin, end):
+        lo, hi = min(out_a[p], out_b[p]), max(out_a[p], out_b[p])
+        r = lo // PARALLEL_BLOCK_ITEMS
+        low[slot[r]], high[slot[r]] = lo, hi
+        slot[r] += 1
+
+
+@njit(cache=True)
+def _sort_range(low, high, begin, end, first_row, last_row, first, second):
+    """Sort the pairs begin .. end - 1, whose i are first_row .. last_row - 1, into place."""
+    rows = last_row - first_row
+    row = np.zeros(rows + 1, dtype=np.int64)
+    for p in range(begin, end):
+        row[low[p] - first_row + 1] += 1
+    row[0] = begin
+    for r in range(rows):
+        row[r + 1] += row[r]
+    fill = row[:rows].copy()
+    for p in range(begin, end):
+        r = low[p] - first_row
+        first[fill[r]], second[fill[r]] = low[p], high[p]
+        fill[r] += 1
+    _sort_rows(second, row, 0, rows)
 
 
 @njit(cache=True)
@@ -680,7 +751,7 @@ def grid_pairs_shared(reach, grid, limit):
     On one dense class (``_one_dense_class``) the items are split into
     blocks of PARALLEL_BLOCK_ITEMS: the candidates of each block are counted
     from the table, each block writes its pairs into its own rows, and the
-    rows are joined in block order; the pairs are then sorted by (i, j), so
+    rows are sorted by (i, j) on the threads (``_sort_block_rows``), so
     the result is ``grid_pairs``' whatever the thread count. Any other grid,
     and a search whose candidates or pairs pass ``limit``, is
     ``grid_pairs``' own (which gives up with its estimate).
@@ -703,12 +774,11 @@ def grid_pairs_shared(reach, grid, limit):
     _dense_blocks_parallel(grid, item_reach, out_a, out_b, offset, ends)
     count = 0
     for block in range(blocks):
-        for row in range(offset[block], ends[block]):
-            out_a[count], out_b[count] = out_a[row], out_b[row]
-            count += 1
+        count += ends[block] - offset[block]
     if count > limit.max_pairs:
         return grid_pairs(reach, grid, limit, motion)
-    return Found(sort_pairs(out_a, out_b, count, n), True, float(count), False, 0)
+    return Found(_sort_block_rows(out_a, out_b, offset, ends, n), True, float(count), False,
+                 0)
 
 
 @njit(cache=True, nogil=True)
