@@ -419,7 +419,10 @@ def _start_solve(bodies, marks, pairs, walls, pair_impulses, wall_impulses, sett
         for c in range(walls.particle.size):
             wall_impulses.impact[c] = (-walls.inward[c] * v[walls.particle[c], walls.axis[c]]
                                        >= settings.threshold)
-    count = np.zeros(n, dtype=np.int64)
+    # Contacts per particle: only the pairs' particles are counted and read.
+    count = np.empty(n, dtype=np.int64)
+    for k in range(m):
+        count[pairs.first[k]] = count[pairs.second[k]] = 0
     single = walls.particle.size == 0
     for k in range(m):
         for p in (pairs.first[k], pairs.second[k]):
@@ -1139,7 +1142,7 @@ def _solve_step(bodies, position, ids, contacts, planes, coefficients, settings,
     pair_impulses, wall_impulses = _contact_impulses(m), _contact_impulses(k)
     # Ids past MAX_CACHED_ID would overflow the keys: such a world keeps no cache.
     keyed = settings.accumulate
-    for p in range(n):
+    for p in range(n if keyed else 0):
         if ids[p] > MAX_CACHED_ID:
             keyed = False
     if keyed:
@@ -1151,7 +1154,9 @@ def _solve_step(bodies, position, ids, contacts, planes, coefficients, settings,
     if settings.accumulate:
         _seed_loads(bodies, dynamic, pairs, walls, pair_impulses, wall_impulses, settings)
     warm = n if settings.accumulate else 0
-    marks = ParticleMarks(dynamic, np.zeros(n, dtype=np.bool_), np.zeros(n),
+    # Spin factors only with friction (nothing reads them without).
+    marks = ParticleMarks(dynamic, np.zeros(n, dtype=np.bool_),
+                          np.zeros(n if settings.friction else 0),
                           np.zeros((warm, 3)), np.zeros(warm, dtype=np.bool_))
     # Per-particle rows are only added to, and only BOOKED is read back (filled
     # from ``booked`` first when the step books per particle): no zeroing.
