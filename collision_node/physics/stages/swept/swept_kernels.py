@@ -396,41 +396,35 @@ def _keep_due(items, count, times, dt, listed):
 
 
 @njit(cache=True, error_model='numpy')
-def _predict_pairs(first, last, use_keys, round_, particles, pairs, clock, keys, settings,
-                   has_resting, n_pending):
-    """Predict pairs again; list the due ones; return the pending count.
+def _predict_pairs(count, particles, pairs, clock, settings, has_resting):
+    """Predict the first ``count`` pairs (the first round); list the due ones; return how many.
 
-    The pairs are ``keys[first:last]`` not yet seen in this round (a
-    particle's incident pairs), or with ``use_keys`` False every pair in
-    ``range(first, last)``. Each gets ``pair_time`` with the scene's
-    gravity and threshold; a resting pair not yet touched, and under
-    gravity a pair ``_out_of_reach`` rejects, get inf without solving for
-    a root (``pair_time`` would give them inf or a time past dt, which the
-    rounds treat alike). A loop of its own with the records unpacked once:
-    through an inlined per-pair helper each pair cost a reference count per
-    array.
+    Each gets ``pair_time`` with the scene's gravity and threshold; a
+    resting pair not yet touched, and under gravity a pair ``_out_of_reach``
+    rejects, get inf without solving for a root (``pair_time`` would give
+    them inf or a time past dt, which the rounds treat alike). Listed in
+    pair order; the times on the threads when the step shares its loops. A
+    loop of its own with the records unpacked once: through an inlined
+    per-pair helper each pair cost a reference count per array, and a
+    helper returning from several branches compiled slower than the
+    branches written out (``_predict_changed`` repeats them).
     """
+    n_pending = 0
+    if settings.threads > 1 and count >= PARALLEL_MIN_ITEMS:
+        # The times on the threads, then the due pairs listed in pair order,
+        # as the loop below lists them.
+        _pair_times_parallel(particles, pairs, clock, settings, count, has_resting)
+        for k in range(count):
+            n_pending = _list_if_due(k, pairs.time[k], settings.dt, pairs.time, pairs.listed,
+                                     pairs.pending, n_pending)
+        return n_pending
     x, v, radius, dynamic = particles.position, particles.velocity, particles.radius, \
         particles.dynamic
     local_time, touched = clock.local_time, clock.touched
-    first_of, second_of, resting, seen = pairs.first, pairs.second, pairs.resting, pairs.seen
+    first_of, second_of, resting = pairs.first, pairs.second, pairs.resting
     gravity, min_speed, dt = settings.gravity, settings.min_speed, settings.dt
     has_gravity = settings.has_gravity
-    if not use_keys and first == 0 and settings.threads > 1 and last >= PARALLEL_MIN_ITEMS:
-        # Every pair of the first round: the times on the threads, then the
-        # due pairs listed in pair order, as the loop below lists them.
-        _pair_times_parallel(particles, pairs, clock, settings, last, has_resting)
-        for k in range(last):
-            n_pending = _list_if_due(k, pairs.time[k], dt, pairs.time, pairs.listed,
-                                     pairs.pending, n_pending)
-        return n_pending
-    for slot in range(first, last):
-        k = slot
-        if use_keys:
-            k = keys[slot]
-            if seen[k] == round_:
-                continue
-            seen[k] = round_
+    for k in range(count):
         i, j = first_of[k], second_of[k]
         if has_resting and resting[k] and not (touched[i] or touched[j]):
             t = np.inf
@@ -1244,6 +1238,76 @@ def _predict_added_pairs(p, round_, particles, pairs, clock, incidence, settings
     return n_pending
 
 
+@njit(cache=True, error_model='numpy')
+def _predict_changed(round_, particles, pairs, clock, incidence, box, settings, has_resting,
+                     resting_wall, n_changed, n_pending, n_wall_due, n_links):
+    """Predict again the pairs and walls of the round's changed particles; return both counts.
+
+    Particle by particle in ``clock.changed`` order: its pairs not yet seen
+    in this round (``_predict_pairs``' rules), requery's added pairs, then
+    its wall row (``_predict_walls``). One call per round with the records
+    unpacked once: a call per particle took a reference count on every
+    array of five records, more than its predictions cost.
+    """
+    x, v, radius, dynamic = particles.position, particles.velocity, particles.radius, \
+        particles.dynamic
+    local_time, touched, changed = clock.local_time, clock.touched, clock.changed
+    first_wall, wall_time = clock.first_wall, clock.wall_time
+    wall_listed, wall_due = clock.wall_listed, clock.wall_due
+    first_of, second_of, resting, seen = pairs.first, pairs.second, pairs.resting, pairs.seen
+    pair_t, listed, pending = pairs.time, pairs.listed, pairs.pending
+    start, keys = incidence.start, incidence.pairs
+    gravity, min_speed, dt = settings.gravity, settings.min_speed, settings.dt
+    has_gravity, dimensions = settings.has_gravity, settings.dimensions
+    box_present, low, high = box.present, box.low, box.high
+    for c in range(n_changed):
+        p = changed[c]
+        for slot in range(start[p], start[p + 1]):
+            k = keys[slot]
+            if seen[k] == round_:
+                continue
+            seen[k] = round_
+            i, j = first_of[k], second_of[k]
+            if has_resting and resting[k] and not (touched[i] or touched[j]):
+                t = np.inf
+            elif has_gravity:
+                if _out_of_reach(x, v, radius, local_time, dynamic, i, j, gravity, dt):
+                    t = np.inf
+                else:
+                    t = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, True,
+                                  min_speed, dt)
+            elif min_speed > 0.0:
+                t = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, False,
+                              min_speed, dt)
+            else:
+                t = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, False, 0.0, dt)
+            n_pending = _list_if_due(k, t, dt, pair_t, listed, pending, n_pending)
+        if n_links:
+            n_pending = _predict_added_pairs(p, round_, particles, pairs, clock, incidence,
+                                             settings, has_resting, n_pending)
+        if not (box_present and dynamic[p]):
+            continue
+        if has_gravity and _walls_out_of_reach(x, v, radius, local_time, p, low, high,
+                                               dimensions, gravity, dt):
+            # Its row of wall_time is read only while it is due.
+            first_wall[p] = np.inf
+            continue
+        wall_times(x, v, radius, local_time, p, low, high, dimensions, gravity, has_gravity,
+                   min_speed, wall_time)
+        first = np.inf
+        for column in range(2 * dimensions):
+            if has_resting and resting_wall[p, column] and not touched[p]:
+                wall_time[p, column] = np.inf
+            if wall_time[p, column] < first:
+                first = wall_time[p, column]
+        first_wall[p] = first
+        if first <= dt and not wall_listed[p]:
+            wall_listed[p] = True
+            wall_due[n_wall_due] = p
+            n_wall_due += 1
+    return n_pending, n_wall_due
+
+
 @njit(cache=True, nogil=True, error_model='numpy')
 def sweep(particles, own, box, settings, candidates, escapes, tally, pairs, clock, incidence):
     """Run one step of the swept stage in place; see ``SweptContactStage`` for the rules.
@@ -1253,12 +1317,11 @@ def sweep(particles, own, box, settings, candidates, escapes, tally, pairs, cloc
     (energy per particle and row, totals, counts) and returns the impact
     records when ``settings.record``, in the order the reference records them.
     """
-    x, v, radius, dynamic = particles.position, particles.velocity, particles.radius, \
-        particles.dynamic
-    n = x.shape[0]
+    dynamic = particles.dynamic
+    n = particles.position.shape[0]
     m = candidates.first.size
-    dt, dimensions = settings.dt, settings.dimensions
-    gravity, has_gravity, min_speed = settings.gravity, settings.has_gravity, settings.min_speed
+    dt = settings.dt
+    has_gravity, min_speed = settings.has_gravity, settings.min_speed
     has_resting, resting_wall = candidates.has_resting, candidates.resting_wall
     local_time = clock.local_time
     best_pair, best_round, best_time = clock.best_pair, clock.best_round, clock.best_time
@@ -1311,27 +1374,14 @@ def sweep(particles, own, box, settings, candidates, escapes, tally, pairs, cloc
         if round_ == 0 and not has_gravity and not min_speed > 0.0 and not has_resting:
             n_pending = _predict_straight(particles, pairs, clock, m, settings)
         elif round_ == 0:
-            n_pending = _predict_pairs(np.int64(0), m, False, round_, particles, pairs, clock,
-                                       incident, settings, has_resting, np.int64(0))
+            n_pending = _predict_pairs(m, particles, pairs, clock, settings, has_resting)
         if round_ == 0 and box.present:
             n_wall_due = _predict_all_walls(particles, clock, box, settings, has_resting,
                                             resting_wall)
-        for c in range(n_changed):
-            p = clock.changed[c]
-            n_pending = _predict_pairs(start[p], start[p + 1], True, round_, particles, pairs,
-                                       clock, incident, settings, has_resting, n_pending)
-            if n_links:
-                n_pending = _predict_added_pairs(p, round_, particles, pairs, clock, incidence,
-                                                 settings, has_resting, n_pending)
-            if box.present and dynamic[p]:
-                if has_gravity and _walls_out_of_reach(x, v, radius, local_time, p, box.low,
-                                                       box.high, dimensions, gravity, dt):
-                    # Its row of wall_time is read only while it is due.
-                    clock.first_wall[p] = np.inf
-                else:
-                    n_wall_due = _predict_walls(p, particles, clock, box, settings, dimensions,
-                                                has_gravity, min_speed, has_resting,
-                                                resting_wall, n_wall_due)
+        if n_changed:
+            n_pending, n_wall_due = _predict_changed(round_, particles, pairs, clock, incidence,
+                                                     box, settings, has_resting, resting_wall,
+                                                     n_changed, n_pending, n_wall_due, n_links)
         for c in range(n_changed):
             clock.is_changed[clock.changed[c]] = False
         n_changed = np.int64(0)
