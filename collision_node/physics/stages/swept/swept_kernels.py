@@ -1240,7 +1240,7 @@ def _predict_added_pairs(p, round_, particles, pairs, clock, incidence, settings
 
 @njit(cache=True, error_model='numpy')
 def _predict_changed(round_, particles, pairs, clock, incidence, box, settings, has_resting,
-                     resting_wall, n_changed, n_pending, n_wall_due, n_links):
+                     resting_wall, n_changed, n_pending, n_wall_due):
     """Predict again the pairs and walls of the round's changed particles; return both counts.
 
     Particle by particle in ``clock.changed`` order: its pairs not yet seen
@@ -1282,7 +1282,7 @@ def _predict_changed(round_, particles, pairs, clock, incidence, box, settings, 
             else:
                 t = pair_time(x, v, radius, local_time, dynamic, i, j, gravity, False, 0.0, dt)
             n_pending = _list_if_due(k, t, dt, pair_t, listed, pending, n_pending)
-        if n_links:
+        if incidence.extra_head[p] >= 0:
             n_pending = _predict_added_pairs(p, round_, particles, pairs, clock, incidence,
                                              settings, has_resting, n_pending)
         if not (box_present and dynamic[p]):
@@ -1381,7 +1381,7 @@ def sweep(particles, own, box, settings, candidates, escapes, tally, pairs, cloc
         if n_changed:
             n_pending, n_wall_due = _predict_changed(round_, particles, pairs, clock, incidence,
                                                      box, settings, has_resting, resting_wall,
-                                                     n_changed, n_pending, n_wall_due, n_links)
+                                                     n_changed, n_pending, n_wall_due)
         for c in range(n_changed):
             clock.is_changed[clock.changed[c]] = False
         n_changed = np.int64(0)
