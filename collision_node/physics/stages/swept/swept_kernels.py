@@ -1308,6 +1308,144 @@ def _predict_changed(round_, particles, pairs, clock, incidence, box, settings, 
     return n_pending, n_wall_due
 
 
+@njit(cache=True)
+def _pairs_from_candidates_in(pairs, candidates, m, begin, end):
+    """Copy candidates begin .. end - 1 into ``pairs``, not listed and not yet predicted.
+
+    ``pairs.time`` needs no clearing: the first round writes every pair's time.
+    """
+    has_resting = candidates.has_resting
+    for k in range(begin, end):
+        pairs.first[k] = candidates.first[k]
+        pairs.second[k] = candidates.second[k]
+        pairs.resting[k] = candidates.resting_pair[k] if has_resting else False
+        pairs.listed[k] = False
+        pairs.seen[k] = -1
+
+
+@njit(cache=True)
+def _clear_particles_in(clock, extra_head, m, begin, end):
+    """Clear the round marks of particles begin .. end - 1 (m: the 'no pair' index).
+
+    ``wall_time`` and ``best_time`` need no clearing: the first round writes
+    the wall rows of every due particle, and a particle's best_time is read
+    only in the round that set it.
+    """
+    for p in range(begin, end):
+        clock.touched[p] = False
+        clock.struck[p] = False
+        clock.is_changed[p] = False
+        clock.wall_listed[p] = False
+        clock.local_time[p] = 0.0
+        clock.first_wall[p] = np.inf
+        clock.best_pair[p] = m
+        clock.best_round[p] = -1
+        extra_head[p] = -1
+
+
+@njit(cache=True)
+def _incidence_serial(first, second, m, n, start, fill, incident):
+    """List each particle's pairs (ascending) in ``incident[start[p]:start[p + 1]]``.
+
+    A counting sort of the m pairs by particle, ``fill`` its scratch.
+    """
+    start[:n + 1] = 0
+    for k in range(m):
+        start[first[k] + 1] += 1
+        start[second[k] + 1] += 1
+    for p in range(n):
+        start[p + 1] += start[p]
+    fill[:n] = start[:n]
+    for k in range(m):
+        for p in (first[k], second[k]):
+            incident[fill[p]] = k
+            fill[p] += 1
+
+
+@njit(cache=True, parallel=True)
+def _set_up_shared(pairs, clock, incidence, candidates, n, m, threads):
+    """Do ``sweep``'s set-up on the threads: the serial path's arrays, bit for bit.
+
+    Pairs and particles in blocks; the incidence as a counting sort over
+    ``threads`` slices of the pairs, each counting and then placing its own
+    pairs after the earlier slices' (so each particle's pairs stay in
+    ascending order whatever the thread count).
+    """
+    pair_blocks = (m + PARALLEL_BLOCK_ITEMS - 1) // PARALLEL_BLOCK_ITEMS
+    for block in prange(pair_blocks):
+        begin = block * PARALLEL_BLOCK_ITEMS
+        _pairs_from_candidates_in(pairs, candidates, m, begin,
+                                  min(begin + PARALLEL_BLOCK_ITEMS, m))
+    particle_blocks = (n + PARALLEL_BLOCK_ITEMS - 1) // PARALLEL_BLOCK_ITEMS
+    for block in prange(particle_blocks):
+        begin = block * PARALLEL_BLOCK_ITEMS
+        _clear_particles_in(clock, incidence.extra_head, m, begin,
+                            min(begin + PARALLEL_BLOCK_ITEMS, n))
+    first, second = pairs.first, pairs.second
+    slice_size = (m + threads - 1) // threads
+    slots = np.zeros((threads, n), dtype=np.int64)
+    for part in prange(threads):
+        _count_pairs_in(first, second, slots[part], part * slice_size,
+                        min((part + 1) * slice_size, m))
+    totals = np.zeros(particle_blocks + 1, dtype=np.int64)
+    for block in prange(particle_blocks):
+        begin = block * PARALLEL_BLOCK_ITEMS
+        totals[block + 1] = _slot_total_in(slots, begin, min(begin + PARALLEL_BLOCK_ITEMS, n))
+    for block in range(particle_blocks):
+        totals[block + 1] += totals[block]
+    start = incidence.start
+    for block in prange(particle_blocks):
+        begin = block * PARALLEL_BLOCK_ITEMS
+        _first_slots_in(slots, start, totals[block], begin, min(begin + PARALLEL_BLOCK_ITEMS, n))
+    start[n] = 2 * m
+    incident = incidence.pairs
+    for part in prange(threads):
+        _place_pairs_in(first, second, slots[part], incident, part * slice_size,
+                        min((part + 1) * slice_size, m))
+
+
+@njit(cache=True)
+def _count_pairs_in(first, second, counts, begin, end):
+    """Add to ``counts`` each particle's pairs among begin .. end - 1."""
+    for k in range(begin, end):
+        counts[first[k]] += 1
+        counts[second[k]] += 1
+
+
+@njit(cache=True)
+def _slot_total_in(slots, begin, end):
+    """Return how many pairs the slices count at particles begin .. end - 1."""
+    total = 0
+    for part in range(slots.shape[0]):
+        for p in range(begin, end):
+            total += slots[part, p]
+    return total
+
+
+@njit(cache=True)
+def _first_slots_in(slots, start, at, begin, end):
+    """Turn the slices' counts of particles begin .. end - 1 into their first slots.
+
+    ``at``: the first slot of particle ``begin``. Writes ``start[p]``.
+    """
+    for p in range(begin, end):
+        start[p] = at
+        for part in range(slots.shape[0]):
+            count = slots[part, p]
+            slots[part, p] = at
+            at += count
+
+
+@njit(cache=True)
+def _place_pairs_in(first, second, slots, incident, begin, end):
+    """Place pairs begin .. end - 1 at their particles' next slots (``slots``, advanced)."""
+    for k in range(begin, end):
+        incident[slots[first[k]]] = k
+        slots[first[k]] += 1
+        incident[slots[second[k]]] = k
+        slots[second[k]] += 1
+
+
 @njit(cache=True, nogil=True, error_model='numpy')
 def sweep(particles, own, box, settings, candidates, escapes, tally, pairs, clock, incidence):
     """Run one step of the swept stage in place; see ``SweptContactStage`` for the rules.
@@ -1325,37 +1463,15 @@ def sweep(particles, own, box, settings, candidates, escapes, tally, pairs, cloc
     has_resting, resting_wall = candidates.has_resting, candidates.resting_wall
     local_time = clock.local_time
     best_pair, best_round, best_time = clock.best_pair, clock.best_round, clock.best_time
-    for k in range(m):
-        pairs.first[k] = candidates.first[k]
-        pairs.second[k] = candidates.second[k]
-        pairs.resting[k] = candidates.resting_pair[k] if has_resting else False
-    start, fill, incident = incidence.start, incidence.fill, incidence.pairs
-    start[:n + 1] = 0
-    clock.touched[:n] = False
-    clock.struck[:n] = False
-    clock.is_changed[:n] = False
-    clock.wall_listed[:n] = False
-    pairs.listed[:m] = False
-    local_time[:n] = 0.0
-    # pairs.time, clock.wall_time and best_time need no clearing: the first
-    # round writes every pair's time and the wall rows of every due particle,
-    # and a particle's best_time is read only in the round that set it.
-    clock.first_wall[:n] = np.inf
-    pairs.seen[:m] = -1
-    best_pair[:n] = m
-    best_round[:n] = -1
-    incidence.extra_head[:n] = -1
-    # Pairs of each particle (counting sort): who to predict again when it changes.
-    for k in range(m):
-        start[pairs.first[k] + 1] += 1
-        start[pairs.second[k] + 1] += 1
-    for p in range(n):
-        start[p + 1] += start[p]
-    fill[:n] = start[:n]
-    for k in range(m):
-        for p in (pairs.first[k], pairs.second[k]):
-            incident[fill[p]] = k
-            fill[p] += 1
+    # The candidates copied, every per-pair and per-particle mark cleared,
+    # and the pairs of each particle listed: who to predict again when it changes.
+    if settings.threads > 1 and max(n, m) >= PARALLEL_MIN_ITEMS:
+        _set_up_shared(pairs, clock, incidence, candidates, n, m, settings.threads)
+    else:
+        _pairs_from_candidates_in(pairs, candidates, m, 0, m)
+        _clear_particles_in(clock, incidence.extra_head, m, 0, n)
+        _incidence_serial(pairs.first, pairs.second, m, n, incidence.start, incidence.fill,
+                          incidence.pairs)
     # Counts start as np.int64(0), not the literal 0: a literal argument
     # makes numba compile each helper it is passed to a second time.
     n_pairs, n_links = m, np.int64(0)
