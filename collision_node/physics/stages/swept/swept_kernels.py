@@ -1309,7 +1309,7 @@ def _predict_changed(round_, particles, pairs, clock, incidence, box, settings, 
 
 
 @njit(cache=True)
-def _pairs_from_candidates_in(pairs, candidates, m, begin, end):
+def _pairs_from_candidates_in(pairs, candidates, begin, end):
     """Copy candidates begin .. end - 1 into ``pairs``, not listed and not yet predicted.
 
     ``pairs.time`` needs no clearing: the first round writes every pair's time.
@@ -1347,19 +1347,15 @@ def _clear_particles_in(clock, extra_head, m, begin, end):
 def _incidence_serial(first, second, m, n, start, fill, incident):
     """List each particle's pairs (ascending) in ``incident[start[p]:start[p + 1]]``.
 
-    A counting sort of the m pairs by particle, ``fill`` its scratch.
+    ``_set_up_shared``'s counting sort with the m pairs in one slice,
+    ``fill`` its counts and next slots.
     """
-    start[:n + 1] = 0
-    for k in range(m):
-        start[first[k] + 1] += 1
-        start[second[k] + 1] += 1
-    for p in range(n):
-        start[p + 1] += start[p]
-    fill[:n] = start[:n]
-    for k in range(m):
-        for p in (first[k], second[k]):
-            incident[fill[p]] = k
-            fill[p] += 1
+    counts = fill[:n]
+    counts[:] = 0
+    _count_pairs_in(first, second, counts, 0, m)
+    _first_slots_in(counts.reshape((1, n)), start, 0, 0, n)
+    start[n] = 2 * m
+    _place_pairs_in(first, second, counts, incident, 0, m)
 
 
 @njit(cache=True, parallel=True)
@@ -1374,8 +1370,7 @@ def _set_up_shared(pairs, clock, incidence, candidates, n, m, threads):
     pair_blocks = (m + PARALLEL_BLOCK_ITEMS - 1) // PARALLEL_BLOCK_ITEMS
     for block in prange(pair_blocks):
         begin = block * PARALLEL_BLOCK_ITEMS
-        _pairs_from_candidates_in(pairs, candidates, m, begin,
-                                  min(begin + PARALLEL_BLOCK_ITEMS, m))
+        _pairs_from_candidates_in(pairs, candidates, begin, min(begin + PARALLEL_BLOCK_ITEMS, m))
     particle_blocks = (n + PARALLEL_BLOCK_ITEMS - 1) // PARALLEL_BLOCK_ITEMS
     for block in prange(particle_blocks):
         begin = block * PARALLEL_BLOCK_ITEMS
@@ -1468,7 +1463,7 @@ def sweep(particles, own, box, settings, candidates, escapes, tally, pairs, cloc
     if settings.threads > 1 and max(n, m) >= PARALLEL_MIN_ITEMS:
         _set_up_shared(pairs, clock, incidence, candidates, n, m, settings.threads)
     else:
-        _pairs_from_candidates_in(pairs, candidates, m, 0, m)
+        _pairs_from_candidates_in(pairs, candidates, 0, m)
         _clear_particles_in(clock, incidence.extra_head, m, 0, n)
         _incidence_serial(pairs.first, pairs.second, m, n, incidence.start, incidence.fill,
                           incidence.pairs)
