@@ -341,6 +341,15 @@ def test_shared_search_is_the_serial_one_on_a_gas_mixed_sizes_and_over_the_limit
         assert found.complete and found.pairs.first.size > count // 2
         i, j = found.pairs
         assert np.all(i < j) and np.all(np.diff(i * count + j) > 0)
+        # Candidates past the limit's rows (its pairs plus one per item): the
+        # blocks run in waves, and the pairs are still the serial search's.
+        tight = grid_kernels.SearchLimit(found.pairs.first.size, 10 ** 9)
+        assert grid_kernels._dense_candidates(dense, count) > 2 * (tight.max_pairs + count)
+        waves = grid_kernels.grid_pairs_shared(gas_reach, dense, tight)
+        assert _found_fields(waves) == _found_fields(found)
+        over = grid_kernels.SearchLimit(found.pairs.first.size - 1, 10 ** 9)
+        assert _found_fields(grid_kernels.grid_pairs_shared(gas_reach, dense, over)) == \
+            _found_fields(grid_kernels.grid_pairs(gas_reach, dense, over, still))
     finally:
         numba.set_num_threads(previous)
 

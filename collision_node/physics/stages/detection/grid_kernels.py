@@ -719,19 +719,37 @@ def _one_dense_class(grid):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _dense_blocks_parallel(grid, item_reach, out_a, out_b, offset, ends):
-    """Write each block's pairs from its own rows of the buffers, blocks on the threads.
+def _dense_blocks_parallel(grid, item_reach, out_a, out_b, offset, ends, blocks):
+    """Write the pairs of blocks blocks[0] .. blocks[1] - 1 into their own rows, on the threads.
 
     Block b is items b * PARALLEL_BLOCK_ITEMS onwards; its candidates fit
-    rows offset[b] .. offset[b + 1] - 1 exactly, and ends[b] is the row
-    after its last pair.
+    rows offset[b] - offset[blocks[0]] .. offset[b + 1] - offset[blocks[0]]
+    - 1 exactly, and ends[b] is the row after its last pair.
     """
     n = grid.item.size
-    for block in prange(offset.size - 1):
+    first, base = blocks[0], offset[blocks[0]]
+    for k in prange(blocks[1] - first):
+        block = first + k
         begin = block * PARALLEL_BLOCK_ITEMS
         ends[block] = _dense_range(grid, item_reach, out_a, out_b, begin,
-                                   min(begin + PARALLEL_BLOCK_ITEMS, n), offset[block],
-                                   offset[block + 1])[0]
+                                   min(begin + PARALLEL_BLOCK_ITEMS, n), offset[block] - base,
+                                   offset[block + 1] - base)[0]
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _kept_rows(out_a, out_b, offset, ends, blocks, kept, kept_a, kept_b):
+    """Copy the pairs of blocks blocks[0] .. blocks[1] - 1 to their rows ``kept`` onwards.
+
+    Block b's pairs (rows offset[b] - offset[blocks[0]] .. ends[b] - 1 of
+    a wave's buffers) move to rows kept[b] .. kept[b + 1] - 1, on the threads.
+    """
+    first, base = blocks[0], offset[blocks[0]]
+    for k in prange(blocks[1] - first):
+        block = first + k
+        row = kept[block]
+        for p in range(offset[block] - base, ends[block]):
+            kept_a[row], kept_b[row] = out_a[p], out_b[p]
+            row += 1
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -752,8 +770,10 @@ def grid_pairs_shared(reach, grid, limit):
     blocks of PARALLEL_BLOCK_ITEMS: the candidates of each block are counted
     from the table, each block writes its pairs into its own rows, and the
     rows are sorted by (i, j) on the threads (``_sort_block_rows``), so
-    the result is ``grid_pairs``' whatever the thread count. Any other grid,
-    and a search whose candidates or pairs pass ``limit``, is
+    the result is ``grid_pairs``' whatever the thread count. Where the
+    candidates pass ``limit.max_pairs`` plus one per item, the blocks run in
+    waves within that many rows, each wave's pairs kept before the next.
+    Any other grid, and a search whose pairs pass ``limit``, is
     ``grid_pairs``' own (which gives up with its estimate).
     """
     motion = PathMotion(False, np.zeros((0, 3)), np.zeros(0), np.zeros(1, dtype=np.int64))
@@ -763,22 +783,44 @@ def grid_pairs_shared(reach, grid, limit):
     blocks = (n + PARALLEL_BLOCK_ITEMS - 1) // PARALLEL_BLOCK_ITEMS
     offset = np.zeros(blocks + 1, dtype=np.int64)
     _dense_counts_parallel(grid, offset)
+    room = limit.max_pairs + n
     for block in range(blocks):
+        if offset[block + 1] > room:
+            return grid_pairs(reach, grid, limit, motion)
         offset[block + 1] += offset[block]
-    if offset[blocks] > limit.max_pairs + n:
-        return grid_pairs(reach, grid, limit, motion)
     item_reach = _items_reach(reach, grid.item)
-    out_a = np.empty(offset[blocks], dtype=np.int64)
-    out_b = np.empty(offset[blocks], dtype=np.int64)
+    out_a = np.empty(min(offset[blocks], room), dtype=np.int64)
+    out_b = np.empty(min(offset[blocks], room), dtype=np.int64)
     ends = np.empty(blocks, dtype=np.int64)
-    _dense_blocks_parallel(grid, item_reach, out_a, out_b, offset, ends)
-    count = 0
-    for block in range(blocks):
-        count += ends[block] - offset[block]
-    if count > limit.max_pairs:
-        return grid_pairs(reach, grid, limit, motion)
-    return Found(_sort_block_rows(out_a, out_b, offset, ends, n), True, float(count), False,
-                 0)
+    if offset[blocks] <= room:
+        _dense_blocks_parallel(grid, item_reach, out_a, out_b, offset, ends, (0, blocks))
+        count = 0
+        for block in range(blocks):
+            count += ends[block] - offset[block]
+        if count > limit.max_pairs:
+            return grid_pairs(reach, grid, limit, motion)
+        return Found(_sort_block_rows(out_a, out_b, offset, ends, n), True, float(count),
+                     False, 0)
+    kept = np.zeros(blocks + 1, dtype=np.int64)
+    kept_a = np.empty(0, dtype=np.int64)
+    kept_b = np.empty(0, dtype=np.int64)
+    first = 0
+    while first < blocks:
+        last = first + 1
+        while last < blocks and offset[last + 1] - offset[first] <= room:
+            last += 1
+        _dense_blocks_parallel(grid, item_reach, out_a, out_b, offset, ends, (first, last))
+        for block in range(first, last):
+            kept[block + 1] = kept[block] + ends[block] - (offset[block] - offset[first])
+        if kept[last] > limit.max_pairs:
+            return grid_pairs(reach, grid, limit, motion)
+        if kept[last] > kept_a.size:
+            size = min(max(2 * kept_a.size, kept[last] * blocks // last), limit.max_pairs)
+            kept_a, kept_b = _grown(kept_a, kept[first], size), _grown(kept_b, kept[first], size)
+        _kept_rows(out_a, out_b, offset, ends, (first, last), kept, kept_a, kept_b)
+        first = last
+    return Found(_sort_block_rows(kept_a, kept_b, kept[:-1], kept[1:], n), True,
+                 float(kept[blocks]), False, 0)
 
 
 @njit(cache=True, nogil=True)
