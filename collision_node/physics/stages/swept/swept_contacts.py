@@ -123,9 +123,14 @@ class SweptContactStage(Stage):
         pair_i, pair_j = self._pairs.find(s.position, s.radius, s.velocity, s.inv_mass, dt,
                                           extra=self._travel(ctx))
         ctx.pair_i, ctx.pair_j = pair_i, pair_j
-        movable = dynamic[pair_i] | dynamic[pair_j]
-        a = np.ascontiguousarray(pair_i[movable], dtype=np.int64)
-        b = np.ascontiguousarray(pair_j[movable], dtype=np.int64)
+        if dynamic.all():
+            # Every pair can move (a gas): the pairs as they are, no mask to build.
+            a = np.ascontiguousarray(pair_i, dtype=np.int64)
+            b = np.ascontiguousarray(pair_j, dtype=np.int64)
+        else:
+            movable = dynamic[pair_i] | dynamic[pair_j]
+            a = np.ascontiguousarray(pair_i[movable], dtype=np.int64)
+            b = np.ascontiguousarray(pair_j[movable], dtype=np.int64)
         min_speed = float(ctx.effects.threshold(dt))
         d = ctx.dimensions
         resting_pair = np.zeros(0, dtype=bool)
