@@ -36,7 +36,7 @@ def test_presets_are_documented_sets_and_override_key_by_key():
     assert parse_accuracy('exact', 'x').mode == 'event'
     assert not parse_accuracy('fast', 'x').ccd
     custom = parse_accuracy({'preset': 'fast', 'ccd': True, 'substeps': 3}, 'x')
-    assert custom == AccuracySettings(ccd=True, substeps=3, iterations=8)
+    assert custom == AccuracySettings(ccd=True, substeps=3, iterations=8, separation_passes=6)
     assert parse_accuracy('accurate', 'x').requery and not parse_accuracy(None, 'x').requery
     assert parse_accuracy({'ordering': 'batched'}, 'x').ccd  # based on balanced
 
@@ -47,6 +47,7 @@ def test_presets_are_documented_sets_and_override_key_by_key():
     ({'mode': 'exactly'}, "s.yaml: accuracy.mode: unknown mode 'exactly'"),
     ({'ordering': 'random'}, "s.yaml: accuracy.ordering: unknown ordering 'random'"),
     ({'substeps': 0}, 's.yaml: accuracy.substeps: must be >= 1, got 0'),
+    ({'separation_passes': 0}, 's.yaml: accuracy.separation_passes: must be >= 1, got 0'),
     ({'collapse_time': -1}, 's.yaml: accuracy.collapse_time: must be >= 0, got -1'),
     ({'speed': 2}, 's.yaml: accuracy.speed: unknown key'),
 ])

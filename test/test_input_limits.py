@@ -58,6 +58,7 @@ OVERSIZED_ACCURACY = [
     ('substeps', '1001', 'must be <= 1000, got 1001'),
     ('iterations', '10001', 'must be <= 10000, got 10001'),
     ('iterations', '1e300', 'must be <= 10000, got 1e+300'),
+    ('separation_passes', '10001', 'must be <= 10000, got 10001'),
     ('event_budget', '9223372036854775807', 'must be <= 10000, got 9223372036854775807'),
     ('event_budget', '1e300', 'must be <= 10000, got 1e+300'),
     ('event_budget', '10001', 'must be <= 10000, got 10001'),

@@ -62,7 +62,7 @@ PINNED = {
     ('oblique_pair', 'accurate'): '02e6f1cb3874679dc3f7',
     ('oblique_pair', 'exact'): '59aab38b8bdc1164f9c8',
     ('oblique_pair', 'batched'): '59aab38b8bdc1164f9c8',
-    ('pile', 'fast'): '1e39d58e1463b1f8b493',
+    ('pile', 'fast'): '083798e34e83942f3940',
     ('pile', 'balanced'): 'adbf9780da8847f5a45d',
     ('pile', 'accurate'): 'bf15e16bee0f8ccc6c5e',
     ('pile', 'exact'): None,

@@ -229,7 +229,7 @@ def test_compiled_stages_equal_numpy_at_every_step_of_the_pile():
         if isinstance(stage, NarrowphaseStage):
             stages[k] = Both(stage, NarrowphaseOracle(stage.speculative, stage.impacts))
         elif isinstance(stage, SeparationStage):
-            stages[k] = Both(stage, SeparationOracle(walls=stage.walls))
+            stages[k] = Both(stage, SeparationOracle(walls=stage.walls, passes=stage.passes))
     world.step(240)
     assert checked == {'narrowphase': 240, 'separation': 240}
     assert world.stats.dissipated['separation'] != 0.0

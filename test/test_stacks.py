@@ -101,16 +101,15 @@ PYRAMIDS = [pytest.param(preset, friction, id=f'{preset}-{label}')
             if preset != 'exact' or friction is None]
 # The settled pours' overlap where the sweeps do not converge in their budget and
 # the step's losses cannot pay to lift it out (docs/stability.md, "Dense contact").
-POUR2D = [pytest.param('fast', marks=gap('deepest overlap above 1 % of r')),
-          pytest.param('balanced'), pytest.param('accurate')]
+POUR2D = [pytest.param('fast'), pytest.param('balanced'), pytest.param('accurate')]
 POUR3D = [pytest.param(preset, marks=gap('deepest overlap above 1 % of r in a box 5 spheres '
                                          'wide'))
           for preset in ('fast', 'balanced')] + [pytest.param('accurate')]
-# Which side of the bound a pile ends on after the drop depends on the pour (six seeds of
-# pour2d: medians 0.011 r under fast, 0.013 r under balanced, range 0.005 to 0.030 r).
-DROP_ON_PILE = [pytest.param(preset, marks=gap(f'deepest overlap above 1 % of r after the drop '
-                                               f'(measured {measured} r)'))
-                for preset, measured in (('fast', 0.0195), ('balanced', 0.0165))] + ['accurate']
+# Which side of the bound a pile ends on after the drop depends on the pour (seeds 0 to 3
+# of pour2d: 0.0025 to 0.012 r under fast, 0.0049 to 0.018 r under balanced).
+DROP_ON_PILE = ['fast', pytest.param('balanced', marks=gap('deepest overlap above 1 % of r after '
+                                                           'the drop (measured 0.0165 r)')),
+                'accurate']
 
 
 @pytest.mark.parametrize('preset, friction', PYRAMIDS)

@@ -85,8 +85,8 @@ BISECTIONS = 60
 
 # --- Separation (stages/correction) --------------------------------------------------------------
 
-# Projection passes per step under gravity (one without: the lecture's).
-GRAVITY_PASSES = 4
+# Projection passes per step under gravity: the accuracy setting
+# ``separation_passes`` (model/accuracy.py; one pass without gravity).
 
 # Of r: under gravity, a particle this close to a floor plane (or to a
 # particle below it) rests on it: the contact solve seeds a cold contact

@@ -98,7 +98,7 @@ def _build(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
         solver.early_impacts = True
     stages += [BroadphaseStage(speculative, impacts=speculative),
                NarrowphaseStage(speculative, impacts=speculative), solver,
-               SeparationStage(walls=effects.walls)]
+               SeparationStage(walls=effects.walls, passes=accuracy.separation_passes)]
     return Pipeline(stages, note='; '.join(notes))
 
 
@@ -127,7 +127,8 @@ def _swept_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
                                     gravity=effects.gravity, drag=effects.drag,
                                     friction=effects.friction, resting=resting))
     if not resting:
-        stages += [NarrowphaseStage(), SeparationStage(walls=effects.walls)]
+        stages += [NarrowphaseStage(),
+                   SeparationStage(walls=effects.walls, passes=accuracy.separation_passes)]
         return Pipeline(stages, note='; '.join(notes))
     if effects.walls is not None:
         # Wall contacts slower than the threshold, found past a plane at the
@@ -140,5 +141,5 @@ def _swept_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
                SequentialImpulseStage(effects.particle_restitution, accuracy.iterations,
                                       friction=effects.friction, walls=effects.walls,
                                       gravity=effects.gravity),
-               SeparationStage(walls=effects.walls)]
+               SeparationStage(walls=effects.walls, passes=accuracy.separation_passes)]
     return Pipeline(stages, note='; '.join(notes))

@@ -10,8 +10,9 @@ velocity, is not used: it is how an elastic gas gains energy without bound.
 Without gravity there is one pass, and a particle that its push would take
 into a wall stays put while its partner takes the whole push (the wall
 clamp would otherwise put it back and leave the overlap). Under gravity
-there are up to ``GRAVITY_PASSES`` Gauss-Seidel passes instead, each from
-the positions as the previous pushes left them, the pairs nearest a support
+there are up to ``separation_passes`` (an accuracy setting) Gauss-Seidel
+passes instead, each from the positions as the previous pushes left them,
+the pairs nearest a support
 (a floor a particle rests on, or a static particle) first. Of a pair
 standing within ``STACK_ALIGNMENT`` of vertical, the particle nearer a
 support holds and the other takes the whole push (unless that takes it into
@@ -53,7 +54,6 @@ from ...step.pipeline import Stage, StepContext
 from ...step.threads import parallel
 from ...step.step_kernels import particle_arrays
 from ..detection.narrowphase_kernels import ContactArrays
-from ...model.tunables import GRAVITY_PASSES
 
 _NO_PAIRS = np.zeros(0, dtype=np.int64)
 
@@ -63,9 +63,13 @@ class SeparationStage(Stage):
 
     name = 'separation'
 
-    def __init__(self, walls: Optional[Walls] = None) -> None:
-        """Keep the wall planes to project particles back inside (None: no walls)."""
+    def __init__(self, walls: Optional[Walls] = None, passes: int = 4) -> None:
+        """Keep the wall planes (None: no walls) and the passes under gravity.
+
+        ``passes`` is the accuracy setting ``separation_passes``.
+        """
         self.walls = walls
+        self.passes = passes
         self._bounds: Optional[WallBounds] = None
         self._bounds_of: tuple = (None, 0)         # the walls and dimensions they were built for
 
@@ -118,10 +122,10 @@ class SeparationStage(Stage):
 
         Under gravity a resting pile sinks a little into itself every step
         (where the walls stage put its lowest particles back on the floor),
-        so up to ``GRAVITY_PASSES`` Gauss-Seidel passes run on the step's
+        so up to ``passes`` Gauss-Seidel passes run on the step's
         contact pairs, their overlap measured again at each pair.
         """
-        passes = 1 if ctx.effects.gravity is None else GRAVITY_PASSES
+        passes = 1 if ctx.effects.gravity is None else self.passes
         # One pass: a particle its push would take into a wall is held there (see the
         # module docstring). The repeated passes under gravity already hand the rest of
         # the push to the partner after each clamp (and holding there made a settling
@@ -183,7 +187,7 @@ class SeparationStage(Stage):
     def describe(self) -> str:
         """Say what the stage does."""
         text = ('position projection along N shared by inverse mass (velocities untouched; '
-                f'under gravity up to {GRAVITY_PASSES} Gauss-Seidel passes from the supports up, '
+                f'under gravity up to {self.passes} Gauss-Seidel passes from the supports up, '
                 'the particle nearer a floor or static particle holding, '
                 'and a lift beyond the step\'s losses '
                 'is paid from the lifted particles\' speed, or not made)')
