@@ -41,6 +41,30 @@ def test_presets_are_documented_sets_and_override_key_by_key():
     assert parse_accuracy({'ordering': 'batched'}, 'x').ccd  # based on balanced
 
 
+def test_separation_passes_reach_the_separation_stage_under_gravity():
+    # fast takes 6 passes, the others 4; a mapping overrides them; each pass is a
+    # Gauss-Seidel pass over the pairs, so more passes leave a pile less overlapped.
+    pile = load_scene('pile')
+    passes = {}
+    custom = {'preset': 'balanced', 'separation_passes': 9}
+    for accuracy in ('fast', 'balanced', 'accurate', custom):
+        settings = parse_accuracy(accuracy, 'x')
+        world = World(pile.with_accuracy(settings))
+        [stage] = [s for s in world.pipeline.stages if s.name == 'separation']
+        passes[str(accuracy)] = stage.passes
+    assert list(passes.values()) == [6, 4, 4, 9]
+    depth = {}
+    for count in (1, 6):
+        settings = parse_accuracy({'preset': 'fast', 'separation_passes': count}, 'x')
+        world = World(pile.with_accuracy(settings))
+        world.step(240)
+        x, r = world.state.position, world.state.radius
+        gap = np.linalg.norm(x[:, None] - x[None, :], axis=2) - (r[:, None] + r[None, :])
+        np.fill_diagonal(gap, np.inf)
+        depth[count] = -float(gap.min()) / float(r.max())
+    assert depth[6] < 0.5 * depth[1], depth
+
+
 @pytest.mark.parametrize('value, message', [
     ('fastest', "s.yaml: accuracy: unknown preset 'fastest'"),
     ({'ccd': 1}, 's.yaml: accuracy.ccd: expected true or false, got 1'),
