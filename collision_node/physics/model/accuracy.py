@@ -87,8 +87,8 @@ class AccuracySettings:
     # Step mode under gravity: Gauss-Seidel passes of the separation stage per
     # (sub)step, each from the positions the last one left, stopping early once
     # no pair overlaps (without gravity there is one Jacobi pass). ``fast``
-    # sweeps its contacts less often and takes more passes here: 4 left its
-    # settled pile 1.4 % of r deep, 6 leave 0.7 %.
+    # sweeps its contacts less often, so it leaves more overlap to separation
+    # and takes more passes here.
     separation_passes: int = 4
     # Event mode: t_c of the TC model, s. An impact within t_c of either
     # particle's previous impact is treated as elastic, so inelastic collapse

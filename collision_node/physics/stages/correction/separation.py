@@ -12,8 +12,8 @@ into a wall stays put while its partner takes the whole push (the wall
 clamp would otherwise put it back and leave the overlap). Under gravity
 there are up to ``separation_passes`` (an accuracy setting) Gauss-Seidel
 passes instead, each from the positions as the previous pushes left them,
-the pairs nearest a support
-(a floor a particle rests on, or a static particle) first. Of a pair
+the pairs nearest a support (a floor a particle rests on, or a static
+particle) first. Of a pair
 standing within ``STACK_ALIGNMENT`` of vertical, the particle nearer a
 support holds and the other takes the whole push (unless that takes it into
 a wall), so a push travels up a stack in one pass. Otherwise two dynamic
@@ -48,6 +48,7 @@ from typing import Optional
 import numpy as np
 
 from .separation_kernels import pay_for_lift, project_overlaps, WallBounds
+from ...model.accuracy import AccuracySettings
 from ...model.effects import Walls
 from ...model.energy import lift
 from ...step.pipeline import Stage, StepContext
@@ -63,7 +64,8 @@ class SeparationStage(Stage):
 
     name = 'separation'
 
-    def __init__(self, walls: Optional[Walls] = None, passes: int = 4) -> None:
+    def __init__(self, walls: Optional[Walls] = None,
+                 passes: int = AccuracySettings.separation_passes) -> None:
         """Keep the wall planes (None: no walls) and the passes under gravity.
 
         ``passes`` is the accuracy setting ``separation_passes``.

@@ -792,15 +792,6 @@ def grid_pairs_shared(reach, grid, limit):
     out_a = np.empty(min(offset[blocks], room), dtype=np.int64)
     out_b = np.empty(min(offset[blocks], room), dtype=np.int64)
     ends = np.empty(blocks, dtype=np.int64)
-    if offset[blocks] <= room:
-        _dense_blocks_parallel(grid, item_reach, out_a, out_b, offset, ends, (0, blocks))
-        count = 0
-        for block in range(blocks):
-            count += ends[block] - offset[block]
-        if count > limit.max_pairs:
-            return grid_pairs(reach, grid, limit, motion)
-        return Found(_sort_block_rows(out_a, out_b, offset, ends, n), True, float(count),
-                     False, 0)
     kept = np.zeros(blocks + 1, dtype=np.int64)
     kept_a = np.empty(0, dtype=np.int64)
     kept_b = np.empty(0, dtype=np.int64)
@@ -814,6 +805,10 @@ def grid_pairs_shared(reach, grid, limit):
             kept[block + 1] = kept[block] + ends[block] - (offset[block] - offset[first])
         if kept[last] > limit.max_pairs:
             return grid_pairs(reach, grid, limit, motion)
+        if first == 0 and last == blocks:
+            # One wave: its rows are sorted where they were written.
+            return Found(_sort_block_rows(out_a, out_b, offset, ends, n), True,
+                         float(kept[blocks]), False, 0)
         if kept[last] > kept_a.size:
             size = min(max(2 * kept_a.size, kept[last] * blocks // last), limit.max_pairs)
             kept_a, kept_b = _grown(kept_a, kept[first], size), _grown(kept_b, kept[first], size)
