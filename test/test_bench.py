@@ -301,6 +301,8 @@ def test_scaling_bench_rows_say_each_thread_count_gave_the_same_state(capsys):
         ('gas 5,000 (fast)', '1'), ('gas 5,000 (fast)', '1'),
         ('pile 240 (fast)', '1'), ('pile 240 (fast)', '1')]
     assert all(row[8] == 'yes' for row in rows)
+    # The gas searched its pair list afresh in its timed steps, as often at each count.
+    assert rows[0][10] == rows[1][10] and int(rows[0][10]) > 0
     # Each case's first row is its own base.
     assert (rows[0][6], rows[0][7], rows[2][6], rows[2][7]) == ('1.00x', '100%', '1.00x', '100%')
     assert any(line.startswith('numba threading layer:') for line in lines)

@@ -6,13 +6,16 @@ of 10,000 spheres (dt = 1/60 s, pour and settling) and the shipped 2-D
 pile (240 discs) at each thread count, in one process, after warm-up
 steps (the first step loads the compiled code). It prints the wall ns per
 particle-step, the speed-up over one thread and the parallel efficiency
-(speed-up / threads), and whether the final state is bit-identical to the
-one-thread run's (it must be). The memory column is the process's peak
-resident memory while the case ran over what it held before the first
-case, per particle, where the case raised the process's peak (else '-':
-an earlier, larger case set it). A stepping process keeps freed memory for
-reuse (``step/memory.py``), so memory an earlier case freed is counted
-against the case that reuses it: an upper bound for the case alone.
+(speed-up / threads), whether the final state is bit-identical to the
+one-thread run's (it must be), and how many of the timed steps searched the
+pair list afresh (each costs several plain steps; a gas case times at least
+``GAS_MIN_STEPS`` steps so that several fall in its window, as in a long
+run). The memory column is the process's peak resident memory while the
+case ran over what it held before the first case, per particle, where the
+case raised the process's peak (else '-': an earlier, larger case set it).
+A stepping process keeps freed memory for reuse (``step/memory.py``), so
+memory an earlier case freed is counted against the case that reuses it:
+an upper bound for the case alone.
 """
 
 from __future__ import annotations
@@ -38,8 +41,13 @@ from .throughput import gas_scene
 DEFAULT_GAS_COUNTS = (10_000, 100_000, 1_000_000)
 GAS_FRACTION = 0.1
 POUR_COUNT = 10_000
-# Particle-steps timed per gas case (the steps of a count: this over the count, at least 5).
+# Particle-steps timed per gas case (the steps of a count: this over the count, at least
+# GAS_MIN_STEPS).
 GAS_WORK = 2e6
+# Fewest timed steps of a gas case: the pair list is searched afresh every few steps (about
+# one step in seven in the gas) and each search costs several plain steps, so a window of
+# a few steps holds one search or none by chance; this many hold several, as a long run does.
+GAS_MIN_STEPS = 30
 
 
 def _state_digest(world: World) -> str:
@@ -63,6 +71,12 @@ def _peak_bytes() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
 
+def _pair_searches(world: World) -> int:
+    """Return the full pair searches the world's broadphase has run so far (0 without one)."""
+    return sum(int(getattr(stage, 'searches', 0)) for stage in world.pipeline.stages
+               if stage.name == 'broadphase')
+
+
 def time_case(make: Callable[[], object], threads: int, warmup: int, steps: int,
               baseline: Optional[int] = None) -> dict:
     """Step a fresh world of ``make()`` on ``threads``; return its timing and final digest.
@@ -74,14 +88,16 @@ def time_case(make: Callable[[], object], threads: int, warmup: int, steps: int,
         before = baseline
     world = World(make(), threads=threads)
     world.step(warmup)
+    searches = _pair_searches(world)
     start, cpu_start = time.perf_counter(), time.process_time()
     world.step(steps)
     seconds = time.perf_counter() - start
     cpu = time.process_time() - cpu_start
+    searches = _pair_searches(world) - searches
     n = len(world.state)
     return {'threads': threads, 'particles': n, 'steps': steps,
             'ns': seconds / (steps * n) * 1e9, 'cpu_ns': cpu / (steps * n) * 1e9,
-            'ms': seconds / steps * 1e3, 'digest': _state_digest(world),
+            'ms': seconds / steps * 1e3, 'digest': _state_digest(world), 'searches': searches,
             # Only a case that raised the process's peak can say what it held at its peak.
             'bytes_per_particle': (_peak_bytes() - before) / n if _peak_bytes() > peak_before
             else None}
@@ -92,7 +108,7 @@ def cases(args: argparse.Namespace) -> list[tuple[str, Callable[[], object], int
     out = []
     for preset in args.presets:
         for count in sorted(args.counts):
-            steps = max(5, int(GAS_WORK / count))
+            steps = max(GAS_MIN_STEPS, int(GAS_WORK / count))
             out.append((f'gas {count:,} ({preset})',
                         lambda c=count, p=preset: parse_scene(
                             dict(gas_scene(c, fraction=GAS_FRACTION), accuracy=p), 'gas'),
@@ -143,8 +159,8 @@ def run(args: argparse.Namespace) -> int:
     print()
     print('| case | threads | steps | ms per step | ns per particle-step | '
           'CPU ns per particle-step | speed-up | efficiency | same state as 1 thread | '
-          'peak memory per particle (B) |')
-    print('|---|---:|---:|---:|---:|---:|---:|---:|---|---:|')
+          'peak memory per particle (B) | full pair searches |')
+    print('|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|')
     identical = True
     for label, make, warmup, steps in cases(args):
         base = None
@@ -157,7 +173,8 @@ def run(args: argparse.Namespace) -> int:
             memory = row['bytes_per_particle']
             print(f'| {label} | {count} | {steps} | {row["ms"]:.3f} | {row["ns"]:.1f} '
                   f'| {row["cpu_ns"]:.1f} | {speedup:.2f}x | {speedup / count:.0%} '
-                  f'| {"yes" if same else "NO"} | {"-" if memory is None else f"{memory:.0f}"} |',
+                  f'| {"yes" if same else "NO"} | {"-" if memory is None else f"{memory:.0f}"} '
+                  f'| {row["searches"]} |',
                   flush=True)
     print()
     print(f'numba threading layer: {thread_count.layer()}; compiling or loading the kernels '
