@@ -203,6 +203,12 @@ def test_a_benchmark_writes_its_results_file(tmp_path, capsys):
     assert data['options'] == {'counts': [200], 'steps': [2], 'threads': 0}
     table = [block for block in data['output'] if block['kind'] == 'table'][0]
     assert [row[0] for row in table['rows']] == ['200']
+    # The machine's speed before the run, and the page says it beside the machine.
+    speed = data['speed_reference']
+    assert speed['python_loop_ms'] > 0.0 and speed['gather_ns'] > 0.0
+    assert (f'speed reference {speed["python_loop_ms"]:g} ms for a Python loop of 1,000,000 '
+            f'additions, {speed["gather_ns"]:g} ns per row of a random gather'
+            in report.machine_text(data))
     # What was printed is what the file holds.
     assert '| ' + ' | '.join(table['rows'][0]) + ' |' in printed
     assert bench.main(['exact', '--counts', '200', '--steps', '1', '--results-dir',

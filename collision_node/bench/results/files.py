@@ -8,7 +8,8 @@ the end the file gets the exact command, the parsed options (the sizes
 that ran, defaults included), the machine (CPU model, cores, OS, Python,
 numpy, numba and the peers' versions), the load average at the start and
 at the end, and the printed output split into text lines and Markdown
-tables (columns, alignment, rows as printed). ``bench report`` renders
+tables (columns, alignment, rows as printed), and the machine's speed
+before the run (``speed_reference``: two fixed tasks, timed). ``bench report`` renders
 docs/performance.md from these files.
 """
 
@@ -107,6 +108,42 @@ def machine() -> dict[str, Any]:
     """Describe this machine: CPU model, cores, architecture, OS, Python, library versions."""
     return {'cpu': cpu_model(), 'cores': os.cpu_count(), 'architecture': platform.machine(),
             'os': os_name(), 'python': platform.python_version(), 'versions': versions()}
+
+
+# Sizes of the machine's speed reference (``speed_reference``).
+REFERENCE_LOOP_STEPS = 1_000_000
+REFERENCE_GATHER_ITEMS = 4_000_000
+
+
+def speed_reference() -> dict[str, float]:
+    """Time two fixed tasks: how fast this machine runs now, to compare runs on other days.
+
+    ``python_loop_ms``: a Python loop adding REFERENCE_LOOP_STEPS integers
+    (the interpreter, where a step's set-up runs); ``gather_ns``: numpy's
+    gather of REFERENCE_GATHER_ITEMS rows of an array of that many 3-vectors
+    in a fixed random order, per row (memory latency, what a large world's
+    kernels wait on). Best of three each. A shared virtual machine can run
+    the same code 2 to 3 times slower on one day than on another; a
+    benchmark's figures are comparable across runs only with these beside them.
+    """
+    import numpy as np
+
+    loop = []
+    for _ in range(3):
+        start = time.perf_counter()
+        total = 0
+        for step in range(REFERENCE_LOOP_STEPS):
+            total += step
+        loop.append(time.perf_counter() - start)
+    rows = np.random.default_rng(0).permutation(REFERENCE_GATHER_ITEMS)
+    points = np.ones((REFERENCE_GATHER_ITEMS, 3))
+    gather = []
+    for _ in range(3):
+        start = time.perf_counter()
+        points.take(rows, axis=0)
+        gather.append(time.perf_counter() - start)
+    return {'python_loop_ms': round(min(loop) * 1e3, 1),
+            'gather_ns': round(min(gather) / REFERENCE_GATHER_ITEMS * 1e9, 2)}
 
 
 def load_average() -> list[float]:
@@ -246,6 +283,7 @@ def record(name: str, argv: Sequence[str], args: argparse.Namespace, output: str
         'seconds': round(time.monotonic() - started['clock'], 1),
         'load_average_start': started['load'],
         'load_average_end': load_average(),
+        'speed_reference': started.get('speed_reference'),
         'exit_code': exit_code,
         'output': parse_output(scrub(output)),
     }
@@ -268,7 +306,8 @@ def run_recorded(name: str, run: Callable[[argparse.Namespace], int],
     if not os.access(path if path.exists() else path.parent, os.W_OK):
         print(f'bench {name}: --out {path}: cannot write: permission denied', file=sys.stderr)
         return 2
-    started = {'machine': machine(), 'load': load_average(), 'clock': time.monotonic(),
+    started = {'machine': machine(), 'load': load_average(),
+               'speed_reference': speed_reference(), 'clock': time.monotonic(),
                'utc': datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M')}
     with captured() as tee:
         exit_code = int(run(args))

@@ -83,6 +83,11 @@ def machine_text(data: dict[str, Any]) -> str:
     loads = f'load average {load[0]:.2f} at the start'
     if end:
         loads += f', {end[0]:.2f} at the end'
+    speed = data.get('speed_reference')
+    if speed:
+        loads += (f'; speed reference {speed["python_loop_ms"]:g} ms for a Python loop of '
+                  f'{results_file.REFERENCE_LOOP_STEPS:,} additions, {speed["gather_ns"]:g} ns '
+                  'per row of a random gather')
     return (f'{m["cpu"]}, {m["cores"]} cores, {m["os"]}; Python {m["python"]}, {software}'
             f'{"; peers: " + peers if peers else ""}; {ran}, {loads}')
 
