@@ -23,7 +23,8 @@ from collision_node.physics.model.accuracy import parse_accuracy
 from collision_node.physics.model.effects import Effects, Walls
 from collision_node.physics.model.impacts import ImpactLog
 from collision_node.physics.model.scene import load_scene
-from collision_node.physics.stages.solve.walls import WallStage
+from collision_node.physics.model.tunables import WALL_ULPS
+from collision_node.physics.stages.solve.walls import near_wall_distance, WallStage
 from collision_node.physics.model.state import ParticleState
 from collision_node.physics.step.pipeline import StepContext, StepStats
 from solve_reference import WallReference
@@ -178,3 +179,46 @@ def test_compiled_walls_equal_numpy_at_every_step_of_the_pile():
     stages[at] = Both(stages[at])
     world.step(240)
     assert len(checked) == 240 and checked[-1] > 100
+
+
+@pytest.mark.parametrize('dims, gravity, threshold, n, threads', [
+    (2, True, None, 400, 1), (3, False, None, 400, 1), (3, True, 0.5, 400, 1),
+    (3, True, None, 5000, 2)])
+def test_the_near_list_holds_every_dynamic_particle_within_the_wall_contact_distance(
+        dims, gravity, threshold, n, threads):
+    """The list the contact solve and the clamp rely on: exactly the particles near a plane.
+
+    Tested where the pass leaves the particles (those it moved included),
+    against a plain numpy test of every particle; 5,000 particles on 2
+    threads take the shared marking loop.
+    """
+    rng = np.random.default_rng(dims + 10 * n)
+    state = crowded_state(rng, n, dims, per_particle=False)
+    walls = Walls(low=np.zeros(3), high=np.ones(3), restitution=0.7)
+    effects = Effects(gravity=GRAVITY if gravity else None, walls=walls,
+                      restitution_threshold=threshold)
+    ctx = context(state, effects, dims, dt=0.05)
+    ctx.threads = threads
+    WallStage(walls).run(ctx)
+    slop, ahead = near_wall_distance(float(effects.threshold(ctx.dt)), ctx.dt)
+    s = ctx.state
+    planes = walls.planes(dims)
+    largest_ulps = max(WALL_ULPS * np.spacing(abs(plane)) for _, plane, _ in planes)
+    exact = np.zeros(n, dtype=bool)       # the solve's widest wall contact, plane by plane
+    least = np.full(n, np.inf)
+    for axis, plane, inward in planes:
+        gap = inward * (s.position[:, axis] - plane) - s.radius
+        exact |= gap <= slop * s.radius + WALL_ULPS * np.spacing(abs(plane)) + ahead
+        least = np.minimum(least, gap)
+    dynamic = s.inv_mass > 0.0
+    expected = np.flatnonzero(exact & dynamic)
+    # Every particle the solve could find is listed (ascending), and no particle farther
+    # than the largest plane's spacings allow.
+    assert np.all(np.diff(ctx.near_walls) > 0)
+    assert np.isin(expected, ctx.near_walls).all()
+    bound = slop * s.radius + (largest_ulps + ahead)
+    np.testing.assert_array_equal(ctx.near_walls, np.flatnonzero(dynamic & (least <= bound)))
+    # Some particles are near a plane and many are not (the list saves work).
+    assert 0 < expected.size < n
+    if threshold is not None or gravity:
+        assert ahead > 0.0

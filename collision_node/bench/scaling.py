@@ -72,9 +72,11 @@ def _peak_bytes() -> int:
 
 
 def _pair_searches(world: World) -> int:
-    """Return the full pair searches the world's broadphase has run so far (0 without one)."""
-    return sum(int(getattr(stage, 'searches', 0)) for stage in world.pipeline.stages
-               if stage.name == 'broadphase')
+    """Return the full pair searches of the world's pair list so far (0 without one).
+
+    The list is the broadphase's, or the swept stage's own (``balanced``, ``accurate``).
+    """
+    return sum(int(getattr(stage, 'searches', 0)) for stage in world.pipeline.stages)
 
 
 def time_case(make: Callable[[], object], threads: int, warmup: int, steps: int,

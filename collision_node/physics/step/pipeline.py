@@ -87,6 +87,13 @@ class StepContext:
     # Threads the kernels may share this step's loops among (``threads.py``):
     # 1 runs every loop serially; any count gives the same result.
     threads: int = 1
+    # The dynamic particles (ascending) near a wall plane as the positions
+    # stand, set by the walls stage: each one not listed is farther from every
+    # plane than any wall contact the solve takes (``walls.near_wall_distance``),
+    # so the contact solve and the separation's clamp test only these. None:
+    # not known (every particle is tested). A stage that moves particles after
+    # the walls stage must keep it true or set it to None.
+    near_walls: Optional[np.ndarray] = None
     # Energy the contact law and the effects removed in this (sub)step, per
     # particle, J: the separation stage budgets a lift per cluster of
     # touching particles from it, never from losses elsewhere. Kept only

@@ -156,9 +156,13 @@ class SeparationStage(Stage):
         g = np.zeros(3) if gravity is None else np.asarray(gravity, dtype=float)
         norm = float(np.linalg.norm(g))
         up = (0.0, 0.0, 1.0) if norm == 0.0 else tuple(float(x) for x in -g / norm)
+        near = ctx.near_walls
         project_overlaps(particles, np.ascontiguousarray(s.dynamic, dtype=np.bool_), contacts,
                          bounds, self._floors(bounds, gravity), up, passes, hold, passes > 1,
-                         parallel(ctx.threads, len(s)))
+                         parallel(ctx.threads, len(s)),
+                         (near is not None, _NO_PAIRS if near is None else near))
+        # The particles moved: the list of those near a wall no longer holds.
+        ctx.near_walls = None
         if particles.position is not s.position:
             s.position[...] = particles.position
 

@@ -383,12 +383,24 @@ def _clamp_inside_shared(position, radius, dynamic, walls):
 
 
 @njit(cache=True)
-def _clamp_inside(particles, dynamic, walls, shared):
+def _clamp_inside(particles, dynamic, walls, shared, among):
     """Place dynamic particles found past a wall plane back on it, plane after plane.
 
     ``shared``: the particles on the threads (each one's result is its own).
+    ``among`` (known, particles): with known, only those particles (each
+    once) can be past a plane, and only they are tested.
     """
     position, radius = particles.position, particles.radius
+    if among[0]:
+        for p in among[1]:
+            if not dynamic[p]:
+                continue
+            for q in range(walls.plane_axis.size):
+                axis, plane = walls.plane_axis[q], walls.plane_value[q]
+                inward = walls.plane_inward[q]
+                if inward * (position[p, axis] - plane) < radius[p]:
+                    position[p, axis] = plane + inward * radius[p]
+        return
     if shared:
         _clamp_inside_shared(position, radius, dynamic, walls)
         return
@@ -399,9 +411,39 @@ def _clamp_inside(particles, dynamic, walls, shared):
                 position[p, axis] = plane + inward * radius[p]
 
 
+@njit(cache=True)
+def _clamp_candidates(near, contacts, n):
+    """Return (known, particles): ``near``'s particles and the contacts', each once.
+
+    Only these can be past a wall plane after a projection pass when
+    ``near`` (known, particles) lists every particle near a plane before it
+    (``StepContext.near_walls``): a pass moves the contacts' particles only.
+    Each particle's clamp is its own, so their order does not matter.
+    """
+    if not near[0]:
+        return near
+    seen = np.zeros(n, dtype=np.bool_)
+    rows = np.empty(near[1].size + 2 * contacts.first.size, dtype=np.int64)
+    kept = _add_unseen(near[1], seen, rows, 0)
+    kept = _add_unseen(contacts.first, seen, rows, kept)
+    kept = _add_unseen(contacts.second, seen, rows, kept)
+    return True, rows[:kept].copy()
+
+
+@njit(cache=True, inline='always')
+def _add_unseen(group, seen, rows, kept):
+    """Append the particles of ``group`` not seen yet to ``rows`` from ``kept``; return the end."""
+    for p in group:
+        if not seen[p]:
+            seen[p] = True
+            rows[kept] = p
+            kept += 1
+    return kept
+
+
 @njit(cache=True, nogil=True)
 def project_overlaps(particles, dynamic, contacts, walls, floors, up, passes, hold, in_turn,
-                     shared):
+                     shared, near):
     """Run the separation stage's projection on ``particles.position`` in place.
 
     ``passes`` Jacobi passes: the first on the narrowphase's normals and
@@ -414,11 +456,14 @@ def project_overlaps(particles, dynamic, contacts, walls, floors, up, passes, ho
     gravity). ``in_turn`` (under gravity): Gauss-Seidel passes instead
     (``_separate_in_turn``), the pairs nearest a support first, stopping
     early once no pair overlaps. ``shared``: the wall clamps run on the
-    threads (the same positions).
+    threads (the same positions). ``near`` (known, particles): with known,
+    every particle near a wall plane (``StepContext.near_walls``): the clamps
+    test those and the contacts' particles only (the same positions).
     """
     position, velocity, radius = particles.position, particles.velocity, particles.radius
     pair_first, pair_second = contacts.first, contacts.second
     n, m = position.shape[0], pair_first.size
+    among = _clamp_candidates(near, contacts, n)
     if in_turn:
         level = support_levels(particles, dynamic, contacts, walls, floors)
         order = support_order(contacts, level)
@@ -426,7 +471,7 @@ def project_overlaps(particles, dynamic, contacts, walls, floors, up, passes, ho
             overlapped = (_separate_in_turn(particles, contacts, order, level, walls, up)
                           if m else False)
             if walls.present:
-                _clamp_inside(particles, dynamic, walls, shared)
+                _clamp_inside(particles, dynamic, walls, shared, among)
             if not overlapped:
                 break
         return
@@ -455,7 +500,7 @@ def project_overlaps(particles, dynamic, contacts, walls, floors, up, passes, ho
                     return
             _separate_pass(particles, current, active, hold, walls, work)
         if walls.present:
-            _clamp_inside(particles, dynamic, walls, shared)
+            _clamp_inside(particles, dynamic, walls, shared, among)
 
 
 @njit(cache=True, nogil=True)
@@ -538,8 +583,9 @@ def warm_up() -> None:
                        np.zeros(1, dtype=np.int64), np.full(1, -10.0), np.ones(1))
     start = particles.position.copy()
     for in_turn in (False, True):
-        project_overlaps(particles, dynamic, contacts, walls, np.ones(1, dtype=np.bool_),
-                         (0.0, 1.0, 0.0), 2, True, in_turn, False)
+        for near in ((False, np.zeros(0, dtype=np.int64)), (True, np.arange(1))):
+            project_overlaps(particles, dynamic, contacts, walls, np.ones(1, dtype=np.bool_),
+                             (0.0, 1.0, 0.0), 2, True, in_turn, False, near)
     pay_for_lift(particles, dynamic, pair_first, pair_second, start, np.ones(2), np.zeros(2))
 
 

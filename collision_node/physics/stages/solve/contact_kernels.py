@@ -716,6 +716,28 @@ def find_wall_contacts(position, radius, dynamic, planes, slop, ahead=0.0):
 
 
 @njit(cache=True)
+def find_wall_contacts_among(position, radius, dynamic, planes, slop, ahead, candidates):
+    """Return ``find_wall_contacts``' result, testing only ``candidates`` (ascending).
+
+    The same lists when every particle that is not a candidate is farther
+    from every plane (``StepContext.near_walls``).
+    """
+    count = planes.axis.size
+    start = np.zeros(count + 1, dtype=np.int64)
+    index = np.empty(candidates.size * count, dtype=np.int64)
+    k = 0
+    for q in range(count):
+        axis, plane, inward = planes.axis[q], planes.value[q], planes.inward[q]
+        for p in candidates:
+            gap = inward * (position[p, axis] - plane) - radius[p]
+            if dynamic[p] and gap <= slop * radius[p] + planes.ulps[q] + ahead:
+                index[k] = p
+                k += 1
+        start[q + 1] = k
+    return _with_planes(planes, start, index[:k].copy())
+
+
+@njit(cache=True)
 def _with_planes(planes, start, index):
     """Return (start, index, axis, inward): each plane's run of ``index``, its axis and side."""
     k = index.size
@@ -823,15 +845,19 @@ def _pair_contacts(bodies, contacts, coefficients, settings):
 
 
 @njit(cache=True)
-def _wall_contacts(radius, dynamic, position, planes, coefficients, settings):
+def _wall_contacts(radius, dynamic, position, planes, coefficients, settings, near):
     """Return the particles touching each wall plane with their coefficients.
 
     With ``ahead`` > 0 also those within ``ahead`` plus ``margin`` radii of
     a plane (speculative: their gap beyond the touching slop is their
-    allowance times dt).
+    allowance times dt). ``near`` (known, particles): with known, only those
+    particles are tested (the same list: no other can touch).
     """
     slop = WALL_SLOP + settings.margin
-    if settings.threads > 1 and radius.size >= PARALLEL_MIN_ITEMS:
+    if near[0]:
+        start, particle, axis, inward = find_wall_contacts_among(
+            position, radius, dynamic, planes, slop, settings.ahead, near[1])
+    elif settings.threads > 1 and radius.size >= PARALLEL_MIN_ITEMS:
         start, particle, axis, inward = find_wall_contacts_shared(
             position, radius, dynamic, planes, slop, settings.ahead)
     else:
@@ -1104,7 +1130,7 @@ def _kept(ids, pairs, walls, pair_impulses, wall_impulses, keyed):
 
 @njit(cache=True, nogil=True)
 def solve_step(bodies, position, ids, contacts, planes, coefficients, settings, cache,
-               booked):
+               booked, near):
     """Run a whole step's contact solve in one call (``_solve_step``); return ``SolveResult``.
 
     ``bodies``, ``contacts``, ``planes``, ``coefficients``, ``settings`` and
@@ -1112,16 +1138,17 @@ def solve_step(bodies, position, ids, contacts, planes, coefficients, settings, 
     ``Coefficients``, ``SolverSettings``, ``WarmStartCache``) as plain
     tuples, ``tuple(record)``: numba types a plain tuple argument in its
     compiled dispatcher but a NamedTuple in Python, tens of microseconds a
-    call.
+    call. ``near`` is (known, particles): with known, the only particles
+    that may touch a wall plane (``StepContext.near_walls``), ascending.
     """
     return _solve_step(Bodies(*bodies), position, ids, StepContacts(*contacts),
                        WallPlanes(*planes), Coefficients(*coefficients),
-                       SolverSettings(*settings), WarmStartCache(*cache), booked)
+                       SolverSettings(*settings), WarmStartCache(*cache), booked, near)
 
 
 @njit(cache=True)
 def _solve_step(bodies, position, ids, contacts, planes, coefficients, settings, cache,
-                booked):
+                booked, near):
     """Run a whole step's contact solve: set-up, ``solve_contacts``, this solve's cache.
 
     The set-up: the wall contacts (``find_wall_contacts`` at WALL_SLOP of
@@ -1137,7 +1164,8 @@ def _solve_step(bodies, position, ids, contacts, planes, coefficients, settings,
     for p in range(n):
         dynamic[p] = bodies.inv_mass[p] > 0.0
     pairs = _pair_contacts(bodies, contacts, coefficients, settings)
-    walls = _wall_contacts(bodies.radius, dynamic, position, planes, coefficients, settings)
+    walls = _wall_contacts(bodies.radius, dynamic, position, planes, coefficients, settings,
+                           near)
     k = walls.particle.size
     pair_impulses, wall_impulses = _contact_impulses(m), _contact_impulses(k)
     # Ids past MAX_CACHED_ID would overflow the keys: such a world keeps no cache.
@@ -1299,8 +1327,9 @@ def warm_up() -> None:
                               0.02, True, 0.0, -0.1, 0.0, 2)
     cache = WarmStartCache(np.array([1], dtype=np.int64), np.ones(1), np.ones((1, 3)),
                            np.array([3], dtype=np.int64), np.ones(1), np.ones((1, 3)))
-    solve_step(tuple(bodies), position, ids, tuple(contacts), tuple(floor),
-               tuple(coefficients), tuple(settings), tuple(cache), np.zeros(2))
+    for near in ((False, np.zeros(0, dtype=np.int64)), (True, np.arange(2))):
+        solve_step(tuple(bodies), position, ids, tuple(contacts), tuple(floor),
+                   tuple(coefficients), tuple(settings), tuple(cache), np.zeros(2), near)
     jacobi_sweeps(tuple(bodies), tuple(contacts), tuple(coefficients), 4)
 
 

@@ -249,7 +249,9 @@ class SequentialImpulseStage(Stage):
             np.ascontiguousarray(state.ids, dtype=np.int64),
             tuple(StepContacts(i, j, normal, order, gap, colour_start)),
             tuple(self._planes(ctx.dimensions)), tuple(coefficients), tuple(settings),
-            tuple(self.cache.kept), ctx.losses if ctx.losses is not None else _NO_VALUES)
+            tuple(self.cache.kept), ctx.losses if ctx.losses is not None else _NO_VALUES,
+            (ctx.near_walls is not None,
+             _NO_ROWS if ctx.near_walls is None else ctx.near_walls))
         self.cache.adopt(result.cache)
         self.sweeps += int(result.sweeps)
         self.solves += 1

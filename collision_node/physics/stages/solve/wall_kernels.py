@@ -8,7 +8,10 @@ one row per particle found past a plane, sorted plane by plane (put-back
 rows, then impacts) and by particle within each, so the stage books the
 energy and records the impacts plane by plane, in the order the vectorised
 reference does (``test/test_wall_kernels.py`` asserts identical states
-and bookings).
+and bookings). In the same pass it lists the dynamic particles near a
+plane as it leaves them (``WallRows.near``): the contact solve and the
+separation stage then test those against the walls instead of every
+particle.
 """
 
 from __future__ import annotations
@@ -58,6 +61,8 @@ class WallMotion(NamedTuple):
     dt: float                # s
     threshold: float         # m/s: the restitution threshold (0: none)
     planar: bool             # a 2-D scene
+    near_slop: float         # ``near``: of its radius, plus the largest ulps and near_ahead
+    near_ahead: float        # m
 
 
 class WallRows(NamedTuple):
@@ -66,6 +71,7 @@ class WallRows(NamedTuple):
     floats: np.ndarray       # (rows, FLOAT_COLUMNS)
     ints: np.ndarray         # (rows, 3): PLANE, PARTICLE, IMPACT
     group_start: np.ndarray  # (2 planes + 1,)
+    near: np.ndarray         # (k,) int64: the dynamic particles near a plane, ascending
 
 
 @njit(cache=True)
@@ -93,15 +99,26 @@ def wall_pass(bodies, position, planes, coefficients, motion, shared):
                       WallCoefficients(*coefficients), WallMotion(*motion), shared)
 
 
+@njit(cache=True, inline='always')
+def _least_gap(position, radius, planes, p):
+    """Return particle p's smallest gap to a plane, m (negative: past it)."""
+    least = np.inf
+    for k in range(planes.axis.size):
+        least = min(least, planes.inward[k] * (position[p, planes.axis[k]] - planes.value[k])
+                    - radius[p])
+    return least
+
+
 @njit(cache=True, nogil=True, parallel=True)
-def _mark_past_shared(position, radius, planes, past):
-    """Set past[p]: particle p is past any plane (``_wall_pass``'s test), rows on the threads."""
+def _flag_near_shared(position, radius, planes, slop, ahead, flagged):
+    """Set flagged[p] as ``_wall_pass`` does (a gap of at most slop r + ahead), on the threads."""
     axis, value, inward = planes.axis, planes.value, planes.inward
     for p in prange(position.shape[0]):
-        beyond = False
+        close = False
         for k in range(axis.size):
-            beyond |= inward[k] * (position[p, axis[k]] - value[k]) - radius[p] < 0.0
-        past[p] = beyond
+            close |= inward[k] * (position[p, axis[k]] - value[k]) - radius[p] \
+                <= slop * radius[p] + ahead
+        flagged[p] = close
 
 
 @njit(cache=True)
@@ -112,93 +129,127 @@ def _wall_pass(bodies, position, planes, coefficients, motion, shared):
     ``WallRows`` sorted by plane, then put back before impacts, then
     particle: plane k's put-back rows at group_start[2 k] ..
     group_start[2 k + 1] - 1, its impacts from there to
-    group_start[2 k + 2] - 1.
+    group_start[2 k + 2] - 1. ``near`` lists every dynamic particle whose
+    smallest gap to a plane is at most near_slop r + the largest ulps +
+    near_ahead as the pass leaves it (a particle the pass moves is tested
+    where it ends): each one within near_slop r + ulps[q] + near_ahead of
+    some plane q, and a few more.
     """
+    inv_mass, radius = bodies.inv_mass, bodies.radius
+    axis, value, inward = planes.axis, planes.value, planes.inward
+    n = position.shape[0]
+    plane_count = axis.size
+    ulps = 0.0
+    for k in range(plane_count):
+        ulps = max(ulps, planes.ulps[k])
+    slop, ahead = motion.near_slop, ulps + motion.near_ahead
+    floats = np.empty((64, FLOAT_COLUMNS))
+    ints = np.empty((64, 3), dtype=np.int64)
+    count = 0
+    # The particles near or past a plane as the step ends (branch-free passes;
+    # the bound is >= 0, so every particle past a plane is flagged). Moving a
+    # particle along one plane's axis changes no other particle's gaps.
+    flagged = np.zeros(n, dtype=np.bool_)
+    if shared:
+        _flag_near_shared(position, radius, planes, slop, ahead, flagged)
+    else:
+        for k in range(plane_count):
+            ax, plane, sign = axis[k], value[k], inward[k]
+            for p in range(n):
+                flagged[p] |= sign * (position[p, ax] - plane) - radius[p] \
+                    <= slop * radius[p] + ahead
+    listed = np.empty(n, dtype=np.int64)
+    near_count = 0
+    for p in range(n):
+        if not flagged[p] or not inv_mass[p] > 0.0:   # static (``ParticleState.dynamic``)
+            continue
+        gap = _least_gap(position, radius, planes, p)
+        if gap < 0.0:
+            count, floats, ints = _reflect(bodies, position, planes, coefficients, motion, p,
+                                           count, floats, ints)
+            # Moved along its planes' axes: tested where it ends.
+            gap = _least_gap(position, radius, planes, p)
+        if gap <= slop * radius[p] + ahead:
+            listed[near_count] = p
+            near_count += 1
+    return _sorted_rows(floats, ints, count, plane_count, listed[:near_count].copy())
+
+
+@njit(cache=True)
+def _reflect(bodies, position, planes, coefficients, motion, p, count, floats, ints):
+    """Reflect particle p at each plane it is past (``_wall_pass``); return the rows so far."""
     velocity, angular, inv_mass, radius = bodies
     axis, value, inward = planes.axis, planes.value, planes.inward
     own_rest, own_mu = coefficients.own_restitution, coefficients.own_friction
     wall_rest, wall_mu = coefficients.restitution, coefficients.friction
     gravity, dt, threshold = motion.gravity, motion.dt, motion.threshold
-    n = position.shape[0]
-    plane_count = axis.size
-    floats = np.empty((64, FLOAT_COLUMNS))
-    ints = np.empty((64, 3), dtype=np.int64)
-    count = 0
     has_rest, has_mu = own_rest.size > 0, own_mu.size > 0
-    # Which particles are past any plane as the step ends (branch-free passes,
-    # the same test as below). A particle past none stays so: a plane moves
-    # only its own particles, along its own axis.
-    past = np.zeros(n, dtype=np.bool_)
-    if shared:
-        _mark_past_shared(position, radius, planes, past)
-    else:
-        for k in range(plane_count):
-            ax, plane, sign = axis[k], value[k], inward[k]
-            for p in range(n):
-                past[p] |= sign * (position[p, ax] - plane) - radius[p] < 0.0
-    for p in range(n):
-        if not past[p] or not inv_mass[p] > 0.0:      # static (``ParticleState.dynamic``)
+    for k in range(axis.size):
+        ax, plane, sign = axis[k], value[k], inward[k]
+        gap = sign * (position[p, ax] - plane) - radius[p]
+        if not gap < 0.0:
             continue
-        for k in range(plane_count):
-            ax, plane, sign = axis[k], value[k], inward[k]
-            gap = sign * (position[p, ax] - plane) - radius[p]
-            if not gap < 0.0:
-                continue
-            if count == floats.shape[0]:
-                floats, ints = _grow(floats, ints, count)
-            u1 = sign * velocity[p, ax]
-            g_n = sign * gravity[ax] if motion.has_gravity else 0.0
-            ints[count, PLANE], ints[count, PARTICLE] = k, p
-            if not u1 < 0.0:
-                # Put back on the plane without an impact: the lift's energy.
-                ints[count, IMPACT] = 0
-                floats[count, WALLS_LOSS] = -g_n * gap / inv_mass[p]
-                position[p, ax] = plane + sign * radius[p]
-                count += 1
-                continue
-            ints[count, IMPACT] = 1
-            e = combined_coefficient(own_rest, has_rest, p, -1, wall_rest)
-            # reflect_on_plane, one particle (q1 = gap).
-            disc = u1 * u1 - 2.0 * g_n * gap
-            real = disc >= 0.0
-            denominator = u1 - math.sqrt(disc if real else 0.0)
-            back = 2.0 * gap / denominator if (real and denominator < 0.0) else np.inf
-            on_path = back <= dt
-            if not on_path:
-                back = 0.0
-            approach = -(u1 - g_n * back)
-            if threshold > 0.0 and approach < threshold:
-                e = 0.0
-            out = e * approach
-            gap_out = out * back + 0.5 * g_n * back * back if on_path else 0.0
-            speed = out + g_n * back
-            resting = gap_out < 0.0
-            settle = (0.5 * out * out if resting else 0.0) + (0.0 if on_path else -g_n * gap)
-            if resting:
-                gap_out, speed = 0.0, 0.0
-            impact_loss = 0.5 * (1.0 + e) * (1.0 - e) * approach * approach
-            mass = 1.0 / inv_mass[p]
-            normal_impulse = mass * (speed - u1)
-            velocity[p, ax] = sign * speed
-            position[p, ax] = plane + sign * (gap_out + radius[p])
-            floats[count, WALLS_LOSS] = mass * (impact_loss + settle)
-            tangential, lost = 0.0, 0.0
-            if motion.friction:
-                mu = combined_coefficient(own_mu, has_mu, p, -1, wall_mu)
-                nx = sign if ax == 0 else 0.0
-                ny = sign if ax == 1 else 0.0
-                nz = sign if ax == 2 else 0.0
-                tangential, lost = pair_friction(velocity, angular, inv_mass, radius, p, -1, nx,
-                                                 ny, nz, normal_impulse, mu, motion.planar)
-            floats[count, FRICTION_LOSS] = lost
-            floats[count, BACK] = back
-            floats[count, NORMAL_IMPULSE] = normal_impulse
-            floats[count, TANGENTIAL] = tangential
-            floats[count, APPROACH] = approach
-            for d in range(3):
-                floats[count, POINT + d] = position[p, d]
-            floats[count, POINT + ax] = plane
+        if count == floats.shape[0]:
+            floats, ints = _grow(floats, ints, count)
+        u1 = sign * velocity[p, ax]
+        g_n = sign * gravity[ax] if motion.has_gravity else 0.0
+        ints[count, PLANE], ints[count, PARTICLE] = k, p
+        if not u1 < 0.0:
+            # Put back on the plane without an impact: the lift's energy.
+            ints[count, IMPACT] = 0
+            floats[count, WALLS_LOSS] = -g_n * gap / inv_mass[p]
+            position[p, ax] = plane + sign * radius[p]
             count += 1
+            continue
+        ints[count, IMPACT] = 1
+        e = combined_coefficient(own_rest, has_rest, p, -1, wall_rest)
+        # reflect_on_plane, one particle (q1 = gap).
+        disc = u1 * u1 - 2.0 * g_n * gap
+        real = disc >= 0.0
+        denominator = u1 - math.sqrt(disc if real else 0.0)
+        back = 2.0 * gap / denominator if (real and denominator < 0.0) else np.inf
+        on_path = back <= dt
+        if not on_path:
+            back = 0.0
+        approach = -(u1 - g_n * back)
+        if threshold > 0.0 and approach < threshold:
+            e = 0.0
+        out = e * approach
+        gap_out = out * back + 0.5 * g_n * back * back if on_path else 0.0
+        speed = out + g_n * back
+        resting = gap_out < 0.0
+        settle = (0.5 * out * out if resting else 0.0) + (0.0 if on_path else -g_n * gap)
+        if resting:
+            gap_out, speed = 0.0, 0.0
+        impact_loss = 0.5 * (1.0 + e) * (1.0 - e) * approach * approach
+        mass = 1.0 / inv_mass[p]
+        normal_impulse = mass * (speed - u1)
+        velocity[p, ax] = sign * speed
+        position[p, ax] = plane + sign * (gap_out + radius[p])
+        floats[count, WALLS_LOSS] = mass * (impact_loss + settle)
+        tangential, lost = 0.0, 0.0
+        if motion.friction:
+            mu = combined_coefficient(own_mu, has_mu, p, -1, wall_mu)
+            nx = sign if ax == 0 else 0.0
+            ny = sign if ax == 1 else 0.0
+            nz = sign if ax == 2 else 0.0
+            tangential, lost = pair_friction(velocity, angular, inv_mass, radius, p, -1, nx,
+                                             ny, nz, normal_impulse, mu, motion.planar)
+        floats[count, FRICTION_LOSS] = lost
+        floats[count, BACK] = back
+        floats[count, NORMAL_IMPULSE] = normal_impulse
+        floats[count, TANGENTIAL] = tangential
+        floats[count, APPROACH] = approach
+        for d in range(3):
+            floats[count, POINT + d] = position[p, d]
+        floats[count, POINT + ax] = plane
+        count += 1
+    return count, floats, ints
+
+
+@njit(cache=True)
+def _sorted_rows(floats, ints, count, plane_count, near):
+    """Return ``WallRows`` of the first ``count`` rows, sorted as ``_wall_pass`` says."""
     # Plane by plane, and within a plane the put-back rows before the impacts
     # (a stable counting sort on 2 plane + impact: particles stay ascending).
     groups = 2 * plane_count
@@ -216,7 +267,7 @@ def _wall_pass(bodies, position, planes, coefficients, motion, shared):
         fill[g] += 1
         sorted_f[at] = floats[r]
         sorted_i[at] = ints[r]
-    return WallRows(sorted_f, sorted_i, group_start)
+    return WallRows(sorted_f, sorted_i, group_start, near)
 
 
 def warm_up() -> None:
@@ -228,7 +279,7 @@ def warm_up() -> None:
                         np.array([1.0, -1.0]), np.zeros(2))
     bodies = Bodies(velocity, np.zeros((2, 3)), np.ones(2), np.full(2, 0.1))
     coefficients = WallCoefficients(none, 1.0, none, 0.5)
-    motion = WallMotion(True, False, np.zeros(3), 0.01, 0.0, False)
+    motion = WallMotion(True, False, np.zeros(3), 0.01, 0.0, False, 0.02, 0.0)
     wall_pass(tuple(bodies), position, tuple(planes), tuple(coefficients), tuple(motion), False)
 
 

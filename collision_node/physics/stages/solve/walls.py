@@ -38,7 +38,7 @@ import numpy as np
 from ...law.primitives import Bodies
 from ...model.effects import Walls
 from ...model.impacts import WALL
-from ...model.tunables import WALL_ULPS
+from ...model.tunables import SPECULATIVE_MARGIN, WALL_SLOP, WALL_ULPS
 from ...step.pipeline import Stage, StepContext
 from ...step.threads import parallel
 from .wall_kernels import (APPROACH, BACK, FRICTION_LOSS, NORMAL_IMPULSE, PARTICLE, POINT,
@@ -55,6 +55,18 @@ def wall_planes(planes: list) -> WallPlanes:
     return WallPlanes(np.array([axis for axis, _, _ in planes], dtype=np.int64), value,
                       np.array([inward for _, _, inward in planes], dtype=float),
                       WALL_ULPS * np.spacing(np.abs(value)))
+
+
+def near_wall_distance(threshold: float, dt: float) -> tuple[float, float]:
+    """Return (slop, ahead) of ``StepContext.near_walls``: the widest wall contact the solve takes.
+
+    A particle touches a plane in the contact solve within slop r + the
+    plane's ulps + ahead (m), with slop WALL_SLOP, plus SPECULATIVE_MARGIN and
+    ahead = threshold dt for speculative contacts (a restitution threshold
+    set); these are the largest of those terms, computed as the solve computes them.
+    """
+    return (WALL_SLOP + SPECULATIVE_MARGIN,
+            float(threshold * dt) if threshold > 0.0 else 0.0)
 
 
 class WallStage(Stage):
@@ -91,12 +103,15 @@ class WallStage(Stage):
             _NONE if s.restitution is None else s.restitution, float(self.walls.restitution),
             _NONE if s.friction is None or not friction else s.friction,
             float(self.friction) if friction else 0.0)
+        threshold = float(self._per_dt[3])
         motion = WallMotion(friction, gravity is not None, self._per_dt[2], float(ctx.dt),
-                            float(self._per_dt[3]), ctx.dimensions == 2)
+                            threshold, ctx.dimensions == 2, *near_wall_distance(threshold,
+                                                                                ctx.dt))
         # The records as plain tuples: the compiled dispatcher types those fast.
-        floats, ints, group_start = wall_pass(tuple(bodies), s.position, planes[0],
-                                              tuple(coefficients), tuple(motion),
-                                              parallel(ctx.threads, len(s)))
+        floats, ints, group_start, near = wall_pass(tuple(bodies), s.position, planes[0],
+                                                    tuple(coefficients), tuple(motion),
+                                                    parallel(ctx.threads, len(s)))
+        ctx.near_walls = near
         if not ints.shape[0]:
             return
         # Book and record plane by plane, as the vectorised law does: the same

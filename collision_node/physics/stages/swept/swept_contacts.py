@@ -218,6 +218,11 @@ class SweptContactStage(Stage):
                    d, pairs, walls)
         return pairs, walls if has_walls else None
 
+    @property
+    def searches(self) -> int:
+        """Return the full pair searches of this stage's pair list so far (for benchmarks)."""
+        return self._pairs.searches
+
     def describe(self) -> str:
         """Say what the stage does."""
         reach = 'r + |v| dt' if self.gravity is None else 'r + |v| dt + |g| dt^2/2'
