@@ -369,46 +369,44 @@ def _separate_in_turn(particles, contacts, order, level, walls, up):
     return any_overlap
 
 
+@njit(cache=True, inline='always')
+def _clamp_particle(position, radius, dynamic, walls, p):
+    """Place dynamic particle ``p``, if past a wall plane, back on it, plane after plane."""
+    if not dynamic[p]:
+        return
+    for q in range(walls.plane_axis.size):
+        axis, plane = walls.plane_axis[q], walls.plane_value[q]
+        inward = walls.plane_inward[q]
+        if inward * (position[p, axis] - plane) < radius[p]:
+            position[p, axis] = plane + inward * radius[p]
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _clamp_inside_shared(position, radius, dynamic, walls):
     """``_clamp_inside`` with the rows on the threads (a particle's planes in the same order)."""
     for p in prange(position.shape[0]):
-        if not dynamic[p]:
-            continue
-        for q in range(walls.plane_axis.size):
-            axis, plane = walls.plane_axis[q], walls.plane_value[q]
-            inward = walls.plane_inward[q]
-            if inward * (position[p, axis] - plane) < radius[p]:
-                position[p, axis] = plane + inward * radius[p]
+        _clamp_particle(position, radius, dynamic, walls, p)
 
 
 @njit(cache=True)
 def _clamp_inside(particles, dynamic, walls, shared, among):
     """Place dynamic particles found past a wall plane back on it, plane after plane.
 
-    ``shared``: the particles on the threads (each one's result is its own).
-    ``among`` (known, particles): with known, only those particles (each
-    once) can be past a plane, and only they are tested.
+    Each particle's clamps are its own, so the particles may go in any
+    order: ``shared``, on the threads. ``among`` (known, particles): with
+    known, only those particles (each once) can be past a plane, and only
+    they are tested.
     """
     position, radius = particles.position, particles.radius
     if among[0]:
         for p in among[1]:
-            if not dynamic[p]:
-                continue
-            for q in range(walls.plane_axis.size):
-                axis, plane = walls.plane_axis[q], walls.plane_value[q]
-                inward = walls.plane_inward[q]
-                if inward * (position[p, axis] - plane) < radius[p]:
-                    position[p, axis] = plane + inward * radius[p]
+            _clamp_particle(position, radius, dynamic, walls, p)
         return
     if shared:
         _clamp_inside_shared(position, radius, dynamic, walls)
         return
-    for q in range(walls.plane_axis.size):
-        axis, plane, inward = walls.plane_axis[q], walls.plane_value[q], walls.plane_inward[q]
-        for p in range(position.shape[0]):
-            if dynamic[p] and inward * (position[p, axis] - plane) < radius[p]:
-                position[p, axis] = plane + inward * radius[p]
+    for p in range(position.shape[0]):
+        _clamp_particle(position, radius, dynamic, walls, p)
 
 
 @njit(cache=True)

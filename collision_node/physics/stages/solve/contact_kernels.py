@@ -700,19 +700,8 @@ def find_wall_contacts(position, radius, dynamic, planes, slop, ahead=0.0):
     ``start`` has one entry per plane and one more (a plane nothing touches
     is an empty run).
     """
-    n, count = position.shape[0], planes.axis.size
-    start = np.zeros(count + 1, dtype=np.int64)
-    index = np.empty(n * count, dtype=np.int64)
-    k = 0
-    for q in range(count):
-        axis, plane, inward = planes.axis[q], planes.value[q], planes.inward[q]
-        for p in range(n):
-            gap = inward * (position[p, axis] - plane) - radius[p]
-            if dynamic[p] and gap <= slop * radius[p] + planes.ulps[q] + ahead:
-                index[k] = p
-                k += 1
-        start[q + 1] = k
-    return _with_planes(planes, start, index[:k].copy())
+    return find_wall_contacts_among(position, radius, dynamic, planes, slop, ahead,
+                                    np.arange(position.shape[0]))
 
 
 @njit(cache=True)
