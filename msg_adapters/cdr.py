@@ -7,9 +7,12 @@ the header. Strings are a uint32 length that counts a trailing NUL, then
 the bytes and the NUL; sequences are a uint32 count, then the elements.
 
 Writing that layout directly lets a whole particle array become one
-``ndarray.tobytes()`` instead of one Python message object per particle;
-``rclpy`` publishes the resulting ``bytes`` as an already serialised
-message. The tests compare every byte with ``rclpy.serialization``.
+copy into the message instead of one Python message object per particle:
+an array is kept as a view of its bytes and copied once, when ``bytes()``
+joins the fields (a large world's message is not copied a second time by
+``tobytes`` first). ``rclpy`` publishes the resulting ``bytes`` as an
+already serialised message. The tests compare every byte with
+``rclpy.serialization``.
 """
 
 from __future__ import annotations
@@ -17,6 +20,16 @@ from __future__ import annotations
 import numpy as np
 
 ENCAPSULATION_CDR_LE = b'\x00\x01\x00\x00'
+
+
+def byte_view(values: np.ndarray) -> memoryview:
+    """Return the bytes of ``values`` in C order as a flat view (copied only if not C-contiguous).
+
+    The same bytes as ``values.tobytes()``, without a copy of a contiguous
+    array: a large world's message is then copied once, into the message.
+    """
+    flat = np.ascontiguousarray(values).reshape(-1)
+    return memoryview(flat.view(np.uint8))
 
 
 class CdrWriter:
@@ -29,7 +42,7 @@ class CdrWriter:
 
     def __init__(self) -> None:
         """Start a message with the encapsulation header."""
-        self._chunks: list[bytes] = [ENCAPSULATION_CDR_LE]
+        self._chunks: list[bytes | memoryview] = [ENCAPSULATION_CDR_LE]
         self._offset = 0          # bytes written after the encapsulation header
         self.padding: list[tuple[int, int]] = []
 
@@ -41,17 +54,20 @@ class CdrWriter:
             self._chunks.append(b'\x00' * gap)
             self._offset += gap
 
-    def raw(self, data: bytes, alignment: int = 1) -> None:
+    def raw(self, data: bytes | memoryview, alignment: int = 1) -> None:
         """Append bytes already in CDR layout, aligned to ``alignment``.
 
-        Fast CDR aligns an array only when it has elements, so empty data
-        adds neither bytes nor padding.
+        ``data`` may be a byte view of an array (``byte_view``): it is read
+        when ``bytes()`` joins the fields, so the array must not change
+        before. Fast CDR aligns an array only when it has elements, so empty
+        data adds neither bytes nor padding.
         """
-        if not data:
+        size = len(data)
+        if not size:
             return
         self.align(alignment)
         self._chunks.append(data)
-        self._offset += len(data)
+        self._offset += size
 
     def uint32(self, value: int) -> None:
         """Append an unsigned 32-bit integer."""
@@ -67,11 +83,11 @@ class CdrWriter:
 
     def float64s(self, values: np.ndarray) -> None:
         """Append float64 values (C order) without a count."""
-        self.raw(np.ascontiguousarray(values, dtype='<f8').tobytes(), 8)
+        self.raw(byte_view(np.asarray(values, dtype='<f8')), 8)
 
     def float32s(self, values: np.ndarray) -> None:
         """Append float32 values (C order) without a count."""
-        self.raw(np.ascontiguousarray(values, dtype='<f4').tobytes(), 4)
+        self.raw(byte_view(np.asarray(values, dtype='<f4')), 4)
 
     def string(self, text: str) -> None:
         """Append a string: length with the NUL, bytes, NUL."""

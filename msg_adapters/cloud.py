@@ -3,7 +3,7 @@
 Fields (little endian, point_step 72): ``id`` uint32 at 0, then float64
 ``x y z vx vy vz radius mass`` at 8..64 (4 bytes of padding after ``id``
 keep every float64 aligned). ``mass`` is ``inf`` for a static particle.
-The data block is a numpy structured array written with one ``tobytes``.
+The data block is a numpy structured array, copied once into the message.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typing import Mapping
 import numpy as np
 from sensor_msgs.msg import PointCloud2, PointField
 
-from .cdr import CdrWriter
+from .cdr import byte_view, CdrWriter
 from .stamp import stamp_from_seconds
 
 FLOAT_FIELDS = ('x', 'y', 'z', 'vx', 'vy', 'vz', 'radius', 'mass')
@@ -69,7 +69,7 @@ def unordered_cloud_writer(records: np.ndarray, fields, point_step: int, seconds
     ``records`` is a structured array laid out as ``fields`` ((name, offset,
     datatype) triples) with ``point_step`` bytes per point.
     """
-    data = records.tobytes()
+    data = byte_view(records)
     n = records.shape[0]
     writer = CdrWriter()
     writer.header(*stamp_from_seconds(seconds), frame_id)

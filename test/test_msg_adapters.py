@@ -17,7 +17,7 @@ from msg_adapters import (body_frame_id, clock_bytes, clock_message, nanoseconds
                           particle_id_from_frame, point_cloud_bytes, poses_from_pose_array,
                           seconds_from_stamp, stamp_from_seconds, state_from_point_cloud,
                           velocities_bytes)
-from msg_adapters.cdr import CdrWriter
+from msg_adapters.cdr import byte_view, CdrWriter, ENCAPSULATION_CDR_LE
 from msg_adapters.cloud import POINT_STEP, point_cloud_writer
 from msg_adapters.markers import PALETTE, STATIC_COLOUR, marker_array_writer, sphere_groups
 from msg_adapters.poses import pose_array_writer
@@ -78,6 +78,18 @@ def test_writer_aligns_float64_after_odd_string():
     assert writer.padding == [(11, 1)]
     assert data[4:8] == (3).to_bytes(4, 'little') and data[8:11] == b'ab\x00'
     assert np.frombuffer(data[12:], '<f8')[0] == 1.0
+
+
+@pytest.mark.parametrize('layout', ['C', 'F', 'strided', 'float32', 'big-endian'])
+def test_writer_takes_any_array_layout_as_its_little_endian_bytes_in_c_order(layout):
+    values = np.arange(12.0).reshape(3, 4) * 0.1
+    given = {'C': values, 'F': np.asfortranarray(values), 'strided': values[:, ::2],
+             'float32': values.astype(np.float32), 'big-endian': values.astype('>f8')}[layout]
+    writer = CdrWriter()
+    writer.float64s(given)
+    expected = np.ascontiguousarray(given, dtype='<f8').tobytes()
+    assert writer.bytes() == ENCAPSULATION_CDR_LE + expected
+    assert byte_view(given).tobytes() == np.ascontiguousarray(given).tobytes()
 
 
 @pytest.mark.parametrize('n', [0, 1, 5, 37])
