@@ -16,6 +16,12 @@ case raised the process's peak (else '-': an earlier, larger case set it).
 A stepping process keeps freed memory for reuse (``step/memory.py``), so
 memory an earlier case freed is counted against the case that reuses it:
 an upper bound for the case alone.
+
+``--cell-order`` also times each gas with its rows put in cell order before
+the first step (``in_cell_order``): the same gas, its particles numbered
+along space, so that neighbours sit near each other in memory. It measures
+what keeping the particles in spatial order would give; a scene's own rows
+are in id order, in whatever order its particles were made.
 """
 
 from __future__ import annotations
@@ -26,11 +32,12 @@ import os
 import resource
 import sys
 import time
+from dataclasses import replace
 from typing import Callable, Optional
 
 import numpy as np
 
-from ..physics.model.scene import parse_scene
+from ..physics.model.scene import parse_scene, Scene
 from ..physics.model.validation import SceneError
 from ..physics.step import threads as thread_count
 from ..physics.step.kernels import prepare
@@ -48,6 +55,33 @@ GAS_WORK = 2e6
 # one step in seven in the gas) and each search costs several plain steps, so a window of
 # a few steps holds one search or none by chance; this many hold several, as a long run does.
 GAS_MIN_STEPS = 30
+# Side of the cells whose order ``in_cell_order`` numbers the particles in, in radii.
+CELL_ORDER_SIDE_RADII = 4.0
+
+
+def in_cell_order(scene: Scene) -> Scene:
+    """Return ``scene`` with its particles' rows sorted by cell (z, then y, then x).
+
+    Only positions and velocities move between rows, so every particle must
+    have the same radius, mass and any other per-particle value: the same
+    gas, its particles numbered along space. Raises ``ValueError`` otherwise.
+    """
+    state = scene.initial
+    for name in ('radius', 'inv_mass', 'restitution', 'friction', 'angular_velocity',
+                 'orientation'):
+        values = getattr(state, name)
+        if values is not None and len(values) and np.any(values != values[:1]):
+            raise ValueError(f'{scene.source}: in_cell_order needs equal particles; '
+                             f'their {name} differs')
+    if len(state) == 0:
+        return scene
+    side = CELL_ORDER_SIDE_RADII * float(state.radius[0])
+    cell = np.floor((state.position - state.position.min(axis=0)) / side).astype(np.int64)
+    cells = cell.max(axis=0) + 1
+    key = (cell[:, 2] * cells[1] + cell[:, 1]) * cells[0] + cell[:, 0]
+    order = np.argsort(key, kind='stable')
+    initial = replace(state, position=state.position[order], velocity=state.velocity[order])
+    return replace(scene, initial=initial)
 
 
 def _state_digest(world: World) -> str:
@@ -111,10 +145,13 @@ def cases(args: argparse.Namespace) -> list[tuple[str, Callable[[], object], int
     for preset in args.presets:
         for count in sorted(args.counts):
             steps = max(GAS_MIN_STEPS, int(GAS_WORK / count))
-            out.append((f'gas {count:,} ({preset})',
-                        lambda c=count, p=preset: parse_scene(
-                            dict(gas_scene(c, fraction=GAS_FRACTION), accuracy=p), 'gas'),
-                        3, steps))
+
+            def make(c=count, p=preset):
+                return parse_scene(dict(gas_scene(c, fraction=GAS_FRACTION), accuracy=p), 'gas')
+            out.append((f'gas {count:,} ({preset})', make, 3, steps))
+            if args.cell_order:
+                out.append((f'gas {count:,} ({preset}, cell order)',
+                            lambda m=make: in_cell_order(m()), 3, steps))
     for preset in args.presets:
         if args.pour_steps:
             out.append((f'pour {POUR_COUNT:,} ({preset})',
@@ -139,6 +176,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--pile-steps', type=int, default=480,
                         help='timed steps of the shipped pile after its first (default 480; '
                              '0: no pile)')
+    parser.add_argument('--cell-order', action='store_true',
+                        help='also time each gas with its rows in cell order (in_cell_order)')
 
 
 def run(args: argparse.Namespace) -> int:
