@@ -351,3 +351,46 @@ def test_scaling_bench_times_the_gas_in_cell_order_beside_it(capsys):
     rows = [[cell.strip() for cell in line.strip('|').split('|')] for line in table[2:]]
     assert [row[0] for row in rows] == ['gas 5,000 (fast)', 'gas 5,000 (fast, cell order)']
     assert all(int(row[10]) > 0 for row in rows)
+
+
+def _deepest_overlap_over_r(world) -> float:
+    """Return the deepest overlap of two discs or a disc and a wall over r, by brute force."""
+    s, walls = world.state, world.scene.effects.walls
+    i, j = np.triu_indices(len(s), 1)
+    gap = np.linalg.norm(s.position[i] - s.position[j], axis=1) - (s.radius[i] + s.radius[j])
+    x, r = s.position[:, :2], s.radius[:, None]
+    inside = np.concatenate([(x - r - walls.low[:2]).ravel(), (walls.high[:2] - x - r).ravel()])
+    return max(0.0, -float(gap.min()), -float(inside.min())) / float(np.median(s.radius))
+
+
+def test_stacks_bench_gives_the_spread_of_pours_over_seeds(tmp_path):
+    from collision_node import World
+    from collision_node.scenarios import drop_ball, pour2d
+    out = tmp_path / 'stacks.json'
+    assert bench.main(['stacks', '--presets', 'fast', '--cases', 'pour_spread', '--seeds', '1',
+                       '2', '--out', str(out)]) == 0
+    (table,) = _recorded_tables(out)
+    assert table['columns'][5:] == ['seeds', 'settled median', 'settled least', 'settled most',
+                                    'settled over 1 %', 'dropped median', 'dropped least',
+                                    'dropped most', 'dropped over 1 %']
+    (row,) = table['rows']
+    assert row[:3] == ['pour_spread', 'fast', str(2 * 2 * 360)] and row[5] == '2'
+    # The same pours stepped here: the table's figures are theirs.
+    settled, dropped = [], []
+    for seed in (1, 2):
+        world = World(pour2d(100, seed=seed, accuracy='fast'))
+        world.step(360)
+        settled.append(_deepest_overlap_over_r(world))
+        drop_ball(world, height=0.3)
+        world.step(360)
+        dropped.append(_deepest_overlap_over_r(world))
+    for values, cells in ((settled, row[6:10]), (dropped, row[10:14])):
+        expected = [np.median(values), min(values), max(values)]
+        assert [float(cell) for cell in cells[:3]] == pytest.approx(expected, rel=5e-3)
+        assert int(cells[3]) == sum(value > 0.01 for value in values)
+
+
+def test_stacks_bench_refuses_a_seed_out_of_range(capsys):
+    with pytest.raises(SystemExit):
+        bench.main(['stacks', '--cases', 'pour_spread', '--seeds', '-1'])
+    assert "-1 is outside 0 .. 2^32 - 1" in capsys.readouterr().err

@@ -19,7 +19,14 @@ steps, the wall and CPU ms per step and the case's outcomes:
   against the restitution threshold, the deepest overlap over r at the end;
 - ``cluster``: 27 touching spheres (e = 0.5, mu = 0.3) moving at 0.5 m/s in
   random directions, falling without walls for 120 steps: the largest relative
-  error of the momentum against p0 + M g t over the steps.
+  error of the momentum against p0 + M g t over the steps;
+- ``pour_spread``: the 2-D pour of 100 discs once per seed (``--seeds``,
+  default 1 to 6), settled 360 steps, then a ball dropped on it and 360 steps
+  more: the median, least and most of the deepest overlap over r (discs and
+  walls) and how many seeds end above 1 % of r, settled and after the drop.
+  A pile is chaotic: a change of the last bit of one push ends it elsewhere,
+  so one pour says on which side of a bound that pour fell, the spread how
+  near the bound the preset sits.
 
 A preset that refuses a scene gives a row saying so, the reason printed
 below the tables. ``--out FILE`` / ``--results-dir [DIR]`` (the dispatcher's)
@@ -39,8 +46,8 @@ import numpy as np
 from ...physics.model.validation import SceneError
 from ...physics.step.kernels import prepare as prepare_kernels
 from ...physics.step.world import World
-from ...scenarios import (PILE_SETTLE_STEPS, STACK_DT, STACK_RADIUS, column_top, disc_pyramid,
-                          drop_ball, falling_cluster, shipped_pile, sphere_column)
+from ...scenarios import (PILE_SETTLE_STEPS, pour2d, STACK_DT, STACK_RADIUS, column_top,
+                          disc_pyramid, drop_ball, falling_cluster, shipped_pile, sphere_column)
 from .pile import _load_line, pile_quality
 
 PRESETS = ('fast', 'balanced', 'accurate', 'exact')
@@ -54,8 +61,16 @@ CLUSTER_SEED = 1
 DROP_HEIGHT = 0.3
 # A particle counts as moved when it is displaced by more than this fraction of r.
 MOVED_RADII = 0.01
+# The spread of settled pours: discs, steps to settle (and after the drop), seeds.
+SPREAD_DISCS = 100
+SPREAD_STEPS = 360
+SPREAD_SEEDS = (1, 2, 3, 4, 5, 6)
+# Most seeds one run takes (each pours, settles and drops once per preset).
+MAX_SEEDS = 64
+# Of r: the bound the spread counts the seeds above.
+OVERLAP_BOUND = 0.01
 CASES = ('column', 'column_5cm', 'pyramid', 'pyramid_mu0', 'pile', 'drop_pile', 'drop_column',
-         'cluster')
+         'cluster', 'pour_spread')
 
 
 def timed_steps(world: World, steps: int,
@@ -163,8 +178,42 @@ def cluster(preset: str) -> dict:
                 collisions=world.stats.collisions)
 
 
-def run_case(case: str, preset: str) -> dict:
-    """Run one case under one preset; a scene the preset refuses gives a ``skipped`` row."""
+def deepest_overlap(world: World) -> float:
+    """Return the deepest overlap of a pair or of a particle with a wall, over r."""
+    found = quality(world)
+    return max(found['overlap_pairs_r'], found['overlap_walls_r'])
+
+
+def _spread(values: list, prefix: str) -> dict:
+    """Return the median, least and most of ``values`` and how many exceed OVERLAP_BOUND."""
+    return {f'{prefix}_median': float(np.median(values)), f'{prefix}_least': min(values),
+            f'{prefix}_most': max(values),
+            f'{prefix}_over': sum(value > OVERLAP_BOUND for value in values)}
+
+
+def pour_spread(preset: str, seeds: tuple = SPREAD_SEEDS, discs: int = SPREAD_DISCS,
+                steps: int = SPREAD_STEPS) -> dict:
+    """Pour, settle and drop a ball on ``discs`` discs per seed; return the overlaps' spread."""
+    settled, dropped = [], []
+    wall = cpu = 0.0
+    for seed in seeds:
+        world = World(pour2d(discs, seed=seed, accuracy=preset))
+        before = timed_steps(world, steps)
+        settled.append(deepest_overlap(world))
+        drop_ball(world, height=DROP_HEIGHT)
+        after = timed_steps(world, steps)
+        dropped.append(deepest_overlap(world))
+        wall += before[0] + after[0]
+        cpu += before[1] + after[1]
+    return dict(_times((wall, cpu), 2 * steps * len(seeds)), seeds=len(seeds),
+                **_spread(settled, 'settled'), **_spread(dropped, 'dropped'))
+
+
+def run_case(case: str, preset: str, seeds: tuple = SPREAD_SEEDS) -> dict:
+    """Run one case under one preset; a scene the preset refuses gives a ``skipped`` row.
+
+    ``seeds``: the pours of ``pour_spread``.
+    """
     try:
         if case in ('column', 'column_5cm'):
             row = column(preset, STACK_RADIUS if case == 'column' else 0.05)
@@ -176,6 +225,8 @@ def run_case(case: str, preset: str) -> dict:
             row = drop(World(shipped_pile(preset)), PILE_SETTLE_STEPS)
         elif case == 'drop_column':
             row = drop(World(sphere_column(accuracy=preset)), STACK_STEPS)
+        elif case == 'pour_spread':
+            row = pour_spread(preset, seeds)
         else:
             row = cluster(preset)
     except SceneError as error:
@@ -222,6 +273,16 @@ TABLES = (
      'error of the momentum against p0 + M g t',
      ('cluster',),
      (('collisions', 'collisions', '{}'), ('momentum error', 'momentum_error', '{:.2g}'))),
+    (f'The 2-D pour of {SPREAD_DISCS} discs once per seed, settled {SPREAD_STEPS} steps, then '
+     f'a ball dropped on it and {SPREAD_STEPS} steps more: the deepest overlap / r (discs and '
+     f'walls) over the seeds, and the seeds above {OVERLAP_BOUND * 100:g} % of r',
+     ('pour_spread',),
+     (('seeds', 'seeds', '{}'), ('settled median', 'settled_median', '{:.3g}'),
+      ('settled least', 'settled_least', '{:.3g}'), ('settled most', 'settled_most', '{:.3g}'),
+      ('settled over 1 %', 'settled_over', '{}'),
+      ('dropped median', 'dropped_median', '{:.3g}'),
+      ('dropped least', 'dropped_least', '{:.3g}'), ('dropped most', 'dropped_most', '{:.3g}'),
+      ('dropped over 1 %', 'dropped_over', '{}'))),
 )
 
 
@@ -266,16 +327,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='presets to run (default: all four; exact where it accepts)')
     parser.add_argument('--cases', nargs='+', default=list(CASES), choices=CASES,
                         help='cases to run (default: all)')
+    parser.add_argument('--seeds', nargs='+', type=_seed, default=list(SPREAD_SEEDS),
+                        help='seeds of pour_spread\'s pours (default: 1 to 6; at most '
+                        f'{MAX_SEEDS} seeds, each 0 to 2^32 - 1)')
+
+
+def _seed(text: str) -> int:
+    """Return one seed of ``--seeds``: an integer from 0 to 2^32 - 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'not an integer: {text[:20]!r}') from None
+    if not 0 <= value < 2 ** 32:
+        raise argparse.ArgumentTypeError(f'{value} is outside 0 .. 2^32 - 1')
+    return value
 
 
 def run(args: argparse.Namespace) -> int:
     """Run every case under every preset and print the tables."""
+    if len(args.seeds) > MAX_SEEDS:
+        print(f'stacks: --seeds: {len(args.seeds)} seeds, at most {MAX_SEEDS}', file=sys.stderr)
+        return 2
     took = prepare_kernels()
     print(f'stacks: {_load_line()}; contact kernels ready in {took:.2f} s')
     rows = []
     for preset in args.presets:
         for case in args.cases:
-            rows.append(run_case(case, preset))
+            rows.append(run_case(case, preset, tuple(args.seeds)))
             # Progress on stderr: the results file records stdout only.
             print(f'  {case} under {preset}: done', file=sys.stderr, flush=True)
     print_tables(rows, args.presets, args.cases)
