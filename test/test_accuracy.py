@@ -42,7 +42,7 @@ def test_presets_are_documented_sets_and_override_key_by_key():
 
 
 def test_separation_passes_reach_the_separation_stage_under_gravity():
-    # fast takes 6 passes, the others 4; a mapping overrides them; each pass is a
+    # fast and balanced take 6 passes, accurate 4; a mapping overrides them; each pass is a
     # Gauss-Seidel pass over the pairs, so more passes leave a pile less overlapped.
     pile = load_scene('pile')
     passes = {}
@@ -52,7 +52,7 @@ def test_separation_passes_reach_the_separation_stage_under_gravity():
         world = World(pile.with_accuracy(settings))
         [stage] = [s for s in world.pipeline.stages if s.name == 'separation']
         passes[str(accuracy)] = stage.passes
-    assert list(passes.values()) == [6, 4, 4, 9]
+    assert list(passes.values()) == [6, 6, 4, 9]
     depth = {}
     for count in (1, 6):
         settings = parse_accuracy({'preset': 'fast', 'separation_passes': count}, 'x')

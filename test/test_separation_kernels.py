@@ -233,3 +233,30 @@ def test_compiled_stages_equal_numpy_at_every_step_of_the_pile():
     world.step(240)
     assert checked == {'narrowphase': 240, 'separation': 240}
     assert world.stats.dissipated['separation'] != 0.0
+
+
+@pytest.mark.parametrize('mover_z, expected', [
+    (0.0, (0.0, 0.08, 0.0)),
+    # 3-D: the nearest point of the circle where the two reach spheres meet
+    # (centre the origin, radius 0.08, in the y-z plane).
+    (0.01, (0.0, 0.08 * 0.07 / np.hypot(0.07, 0.01), 0.08 * 0.01 / np.hypot(0.07, 0.01))),
+])
+def test_a_particle_sunk_into_a_groove_rises_to_touch_both_supports_exactly(mover_z, expected):
+    # Two static discs 0.12 m apart (r = 0.05 m) and a disc sunk between them under
+    # gravity: the separation puts it where it touches both (0.08 m up, by Pythagoras:
+    # 0.1^2 = 0.06^2 + 0.08^2), straight up from where it was, to round-off (the sweeps
+    # it replaced stopped at 1e-9 r). Its losses pay for the lift.
+    state = ParticleState(ids=np.arange(3),
+                          position=np.array([[-0.06, 0.0, 0.0], [0.06, 0.0, 0.0],
+                                             [0.0, 0.07, mover_z]]),
+                          velocity=np.zeros((3, 3)), radius=np.full(3, 0.05),
+                          inv_mass=np.array([0.0, 0.0, 10.0]))
+    effects = Effects(gravity=GRAVITY)
+    contacts = reference_contacts(state.position, state.velocity, state.radius,
+                                  state.inv_mass, np.array([0, 1]), np.array([2, 2]))
+    assert np.all(contacts.penetration > 0.0)
+    ref, new = run_both(state, effects, 3, contacts, np.array([0.0, 0.0, 1.0]))
+    assert_same_outcome(ref, new)
+    np.testing.assert_allclose(new.state.position[2], expected, rtol=0.0, atol=1e-16)
+    gaps = np.linalg.norm(new.state.position[:2] - new.state.position[2], axis=1) - 0.1
+    np.testing.assert_allclose(gaps, 0.0, rtol=0.0, atol=1e-16)

@@ -38,9 +38,11 @@ TEN_SECONDS = 600
 # The small 2-D pour: discs, and steps at dt = 1/120 s to settle (3 s).
 PILE_DISCS = 100
 PILE_STEPS = 360
-# The small 3-D pour: spheres, and steps at dt = 1/60 s (the pour lands and settles).
+# The small 3-D pour: spheres, and steps at dt = 1/60 s (the pour lands and settles:
+# under accurate, which never sleeps, spheres still slide down the pile at 0.3 to 0.7 m/s
+# near 4 s, and below 0.13 m/s from 5 s on).
 POUR_SPHERES = 400
-POUR_STEPS = 240
+POUR_STEPS = 360
 MOMENTUM_RTOL = 1e-12
 
 
@@ -105,11 +107,12 @@ POUR2D = [pytest.param('fast'), pytest.param('balanced'), pytest.param('accurate
 POUR3D = [pytest.param(preset, marks=gap('deepest overlap above 1 % of r in a box 5 spheres '
                                          'wide'))
           for preset in ('fast', 'balanced')] + [pytest.param('accurate')]
-# Which side of the bound a pile ends on after the drop depends on the pour (seeds 0 to 3
-# of pour2d: 0.0025 to 0.012 r under fast, 0.0049 to 0.018 r under balanced).
-DROP_ON_PILE = ['fast', pytest.param('balanced', marks=gap('deepest overlap above 1 % of r after '
-                                                           'the drop (measured 0.0165 r)')),
-                'accurate']
+# Which side of the bound a pile ends on after the drop depends on the pour: over seeds 1
+# to 6 (`bench stacks --cases pour_spread`) 0.0035 to 0.013 r under fast (2 of 6 above),
+# 0.0042 to 0.013 r under balanced (1 of 6), at most 0.00073 r under accurate.
+DROP_ON_PILE = [pytest.param('fast', marks=gap('deepest overlap above 1 % of r after the drop '
+                                               '(measured 0.0105 r)')),
+                'balanced', 'accurate']
 
 
 @pytest.mark.parametrize('preset, friction', PYRAMIDS)

@@ -7,6 +7,7 @@ kernels must match it bit for bit (``test/test_separation_kernels.py``).
 
 from __future__ import annotations
 
+import math
 from typing import Optional
 
 import numpy as np
@@ -55,6 +56,55 @@ def held_by_walls(position: np.ndarray, radius: np.ndarray, push: np.ndarray, wa
     into_low = (p <= walls.low[:dimensions] + r) & (d < 0.0)
     into_high = (p >= walls.high[:dimensions] - r) & (d > 0.0)
     return np.any(into_low | into_high, axis=1)
+
+
+def _dot(a: tuple, b: tuple) -> float:
+    """Return a . b, summed as the kernels' ``dot3``: (x + z) + y."""
+    return (a[0] * b[0] + a[2] * b[2]) + a[1] * b[1]
+
+
+def _outside_two(position: np.ndarray, radius: np.ndarray, p: int, q1: int, q2: int) -> bool:
+    """Move p to the nearest point overlapping neither support (the kernel's closed form).
+
+    False, moving nothing, where it does not apply; the sweeps run then.
+    """
+    reach1, reach2 = float(radius[p] + radius[q1]), float(radius[p] + radius[q2])
+    at, one, two = (tuple(float(x) for x in position[row]) for row in (p, q1, q2))
+    o1 = tuple(at[d] - one[d] for d in range(3))
+    o2 = tuple(at[d] - two[d] for d in range(3))
+    d1, d2 = math.sqrt(_dot(o1, o1)), math.sqrt(_dot(o2, o2))
+    if d1 == 0.0 or d2 == 0.0:
+        return False
+    if d1 >= reach1 and d2 >= reach2:
+        return True
+    for (d, reach, o, centre, other, other_reach) in ((d1, reach1, o1, one, two, reach2),
+                                                      (d2, reach2, o2, two, one, reach1)):
+        if d < reach:
+            scale = reach / d
+            x = tuple(centre[k] + scale * o[k] for k in range(3))
+            e = tuple(x[k] - other[k] for k in range(3))
+            if _dot(e, e) >= other_reach * other_reach:
+                position[p] = x
+                return True
+    u = tuple(two[d] - one[d] for d in range(3))
+    apart = math.sqrt(_dot(u, u))
+    if apart == 0.0:
+        return False
+    u = tuple(x / apart for x in u)
+    a = (apart * apart + reach1 * reach1 - reach2 * reach2) / (2.0 * apart)
+    h2 = reach1 * reach1 - a * a
+    if not h2 > 0.0:
+        return False
+    centre = tuple(one[d] + a * u[d] for d in range(3))
+    w = tuple(at[d] - centre[d] for d in range(3))
+    along = _dot(w, u)
+    w = tuple(w[d] - along * u[d] for d in range(3))
+    size = math.sqrt(_dot(w, w))
+    if size == 0.0:
+        return False
+    scale = math.sqrt(h2) / size
+    position[p] = tuple(centre[d] + scale * w[d] for d in range(3))
+    return True
 
 
 def clusters(n: int, dynamic: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
@@ -219,6 +269,10 @@ class SeparationOracle(SeparationStage):
     @staticmethod
     def _lift_off_supports(s, p: int, group: list, c) -> None:
         """Projected Gauss-Seidel on the mover's pushes out of its supports (see the kernel)."""
+        if len(group) == 2:
+            supports = [c.j[k] if c.i[k] == p else c.i[k] for k in group]
+            if _outside_two(s.position, s.radius, p, *supports):
+                return
         lifted = [0.0] * len(group)
         for _ in range(SUPPORT_SWEEPS):
             converged = True
