@@ -216,6 +216,25 @@ def _mover(position, radius, inv_mass, a, b, normal, depth, level, walls, up):
 
 
 @njit(cache=True, inline='always')
+def _onto_sphere(position, p, sphere, other):
+    """Put particle ``p`` on one reach sphere if it then clears the other; return whether.
+
+    ``sphere`` is (centre row, p's offset from it, that offset's length, reach):
+    p goes along its offset to the reach; ``other`` is (centre row, reach).
+    """
+    centre, offset, distance, reach = sphere
+    s = reach / distance
+    x = (position[centre, 0] + s * offset[0], position[centre, 1] + s * offset[1],
+         position[centre, 2] + s * offset[2])
+    e = (x[0] - position[other[0], 0], x[1] - position[other[0], 1],
+         x[2] - position[other[0], 2])
+    if dot3(e[0], e[1], e[2], e[0], e[1], e[2]) >= other[1] * other[1]:
+        position[p, 0], position[p, 1], position[p, 2] = x
+        return True
+    return False
+
+
+@njit(cache=True, inline='always')
 def _outside_two(position, radius, p, q1, q2):
     """Move particle ``p`` to the nearest point where it overlaps neither ``q1`` nor ``q2``.
 
@@ -238,22 +257,10 @@ def _outside_two(position, radius, p, q1, q2):
         return False
     if d1 >= reach1 and d2 >= reach2:
         return True
-    if d1 < reach1:
-        s = reach1 / d1
-        x = (position[q1, 0] + s * o1[0], position[q1, 1] + s * o1[1],
-             position[q1, 2] + s * o1[2])
-        e = (x[0] - position[q2, 0], x[1] - position[q2, 1], x[2] - position[q2, 2])
-        if dot3(e[0], e[1], e[2], e[0], e[1], e[2]) >= reach2 * reach2:
-            position[p, 0], position[p, 1], position[p, 2] = x
-            return True
-    if d2 < reach2:
-        s = reach2 / d2
-        x = (position[q2, 0] + s * o2[0], position[q2, 1] + s * o2[1],
-             position[q2, 2] + s * o2[2])
-        e = (x[0] - position[q1, 0], x[1] - position[q1, 1], x[2] - position[q1, 2])
-        if dot3(e[0], e[1], e[2], e[0], e[1], e[2]) >= reach1 * reach1:
-            position[p, 0], position[p, 1], position[p, 2] = x
-            return True
+    if d1 < reach1 and _onto_sphere(position, p, (q1, o1, d1, reach1), (q2, reach2)):
+        return True
+    if d2 < reach2 and _onto_sphere(position, p, (q2, o2, d2, reach2), (q1, reach1)):
+        return True
     ux, uy, uz = (position[q2, 0] - position[q1, 0], position[q2, 1] - position[q1, 1],
                   position[q2, 2] - position[q1, 2])
     apart = math.sqrt(dot3(ux, uy, uz, ux, uy, uz))
