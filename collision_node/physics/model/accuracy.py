@@ -86,10 +86,10 @@ class AccuracySettings:
     iterations: int = 32
     # Step mode under gravity: Gauss-Seidel passes of the separation stage per
     # (sub)step, each from the positions the last one left, stopping early once
-    # no pair overlaps (without gravity there is one Jacobi pass). Over six
-    # pours of a 2-D pile (``bench stacks --cases pour_spread``) 4 passes left
-    # a median deepest overlap of 1.1 % of r under ``balanced``, 6 passes
-    # 0.54 %; ``accurate``, whose 4 substeps each take their passes, keeps 4.
+    # no pair overlaps (without gravity there is one Jacobi pass). Settled
+    # piles keep less overlap with more passes (their spread over pours:
+    # ``bench stacks --cases pour_spread``); ``accurate``, whose 4 substeps
+    # each take their passes, takes 4.
     separation_passes: int = 6
     # Event mode: t_c of the TC model, s. An impact within t_c of either
     # particle's previous impact is treated as elastic, so inelastic collapse

@@ -241,8 +241,8 @@ def _outside_two(position, radius, p, q1, q2):
     The point nearest ``p`` outside one reach sphere (r_p + r_q about q)
     if it is outside the other too, else the nearest point of the circle
     where the two spheres meet: the exact answer of the projected sweeps in
-    one go (a disc in a groove took about ten sweeps to settle to
-    SUPPORT_TOLERANCE). Returns False, moving nothing, where the closed
+    one go (in a groove they need about ten to reach SUPPORT_TOLERANCE).
+    Returns False, moving nothing, where the closed
     form does not apply (coincident centres, spheres that do not meet, a
     particle on their axis): the caller sweeps.
     """
