@@ -130,7 +130,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def particle_records(world: World) -> list[dict]:
     """Return the final state as JSON-ready records, one per particle."""
-    s = world.state
+    s = world.state.in_id_order()
     mass = s.mass
     records = []
     for k in range(len(s)):

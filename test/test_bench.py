@@ -316,40 +316,17 @@ def test_scaling_bench_refuses_a_thread_count_over_the_pool(capsys):
         'at most' in capsys.readouterr().err
 
 
-def test_cell_order_numbers_the_same_gas_along_space():
-    """The same rows of position and velocity, ids unchanged, sorted by their cell's key."""
-    from collision_node.bench.scaling import CELL_ORDER_SIDE_RADII, in_cell_order
+def test_scaling_bench_times_the_gas_in_id_order_beside_it(capsys):
+    from collision_node import World
+    from collision_node.bench.scaling import in_id_order
     from collision_node.physics.model.scene import parse_scene
-    scene = parse_scene(gas_scene(3000, fraction=0.1), 'gas')
-    ordered = in_cell_order(scene)
-    before, after = scene.initial, ordered.initial
-    assert np.array_equal(after.ids, before.ids)
-    rows = np.hstack([before.position, before.velocity])
-    moved = np.hstack([after.position, after.velocity])
-    assert not np.array_equal(moved, rows)
-    assert np.array_equal(moved[np.lexsort(moved.T)], rows[np.lexsort(rows.T)])
-    side = CELL_ORDER_SIDE_RADII * before.radius[0]
-    cell = np.floor((after.position - before.position.min(axis=0)) / side).astype(np.int64)
-    keys = [tuple(c) for c in cell[:, ::-1]]        # (z, y, x)
-    assert keys == sorted(keys)
-
-
-def test_cell_order_refuses_particles_that_differ():
-    from collision_node.bench.scaling import in_cell_order
-    from collision_node.physics.model.scene import parse_scene
-    scene = parse_scene(gas_scene(50, fraction=0.1), 'gas')
-    scene.initial.radius[7] *= 1.5
-    with pytest.raises(ValueError, match='gas: in_cell_order needs equal particles; their '
-                                         'radius differs'):
-        in_cell_order(scene)
-
-
-def test_scaling_bench_times_the_gas_in_cell_order_beside_it(capsys):
+    world = in_id_order(World(parse_scene(gas_scene(300, fraction=0.1), 'gas')))
+    assert world.pipeline.spatial_order.min_particles == sys.maxsize
     assert bench.main(['scaling', '--counts', '5000', '--presets', 'fast', '--pour-steps', '0',
-                       '--pile-steps', '0', '--thread-counts', '1', '--cell-order']) == 0
+                       '--pile-steps', '0', '--thread-counts', '1', '--id-order']) == 0
     table = [line for line in capsys.readouterr().out.splitlines() if line.startswith('|')]
     rows = [[cell.strip() for cell in line.strip('|').split('|')] for line in table[2:]]
-    assert [row[0] for row in rows] == ['gas 5,000 (fast)', 'gas 5,000 (fast, cell order)']
+    assert [row[0] for row in rows] == ['gas 5,000 (fast)', 'gas 5,000 (fast, id order)']
     assert all(int(row[10]) > 0 for row in rows)
 
 

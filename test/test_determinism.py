@@ -2,7 +2,8 @@
 
 Every shipped scene at every stepped preset (and batched ordering), a 3-D
 pour large enough that the parallel loops run (falling spheres, walls,
-resting contact, friction, sleeping) and a 3-D gas of 20,000 are stepped in
+resting contact, friction, sleeping), the same pour with its rows kept in
+cell order (``stages/ordering``) and a 3-D gas of 20,000 are stepped in
 one child process whose numba pool holds 4 threads (``NUMBA_NUM_THREADS``,
 which must be set before numba starts), once per thread count; the child
 prints a digest of each final state. The default count of the rest of the
@@ -38,6 +39,8 @@ POUR_COUNT = 6000
 POUR_STEPS = 40
 GAS_COUNT = 20_000
 GAS_STEPS = 5
+# The label mark of a case whose rows are kept in cell order however few they are.
+ORDERED = ' in cell order'
 
 
 def cases() -> list:
@@ -53,6 +56,10 @@ def cases() -> list:
         out.append((f'gas_{GAS_COUNT}/{preset}',
                     lambda p=preset: parse_scene(dict(gas_scene(GAS_COUNT, fraction=0.1),
                                                       accuracy=p), 'gas'), GAS_STEPS))
+        # The same pour with its rows kept in cell order (as a world of
+        # SPATIAL_ORDER_MIN_PARTICLES does): renumbered at each full search.
+        out.append((f'pour3d_{POUR_COUNT}{ORDERED}/{preset}',
+                    lambda p=preset: pour3d(POUR_COUNT, accuracy=p), POUR_STEPS))
     return out
 
 
@@ -66,6 +73,8 @@ def child_digests() -> dict:
         result[label] = {}
         for count in THREAD_COUNTS:
             world = World(scene, threads=count)
+            if ORDERED in label:
+                world.pipeline.spatial_order.min_particles = 2
             world.step(steps)
             result[label][count] = world_digest(world)
     return result

@@ -17,11 +17,12 @@ A stepping process keeps freed memory for reuse (``step/memory.py``), so
 memory an earlier case freed is counted against the case that reuses it:
 an upper bound for the case alone.
 
-``--cell-order`` also times each gas with its rows put in cell order before
-the first step (``in_cell_order``): the same gas, its particles numbered
-along space, so that neighbours sit near each other in memory. It measures
-what keeping the particles in spatial order would give; a scene's own rows
-are in id order, in whatever order its particles were made.
+A world of at least ``SPATIAL_ORDER_MIN_PARTICLES`` keeps its rows in
+cell order (``physics/stages/ordering``), renumbered at each full pair
+search. ``--id-order`` also times each gas with that order turned off: its
+rows stay in id order, which for the generated gas is a random order in
+space, so every pair reads its partner from a random place in memory. The
+two rows side by side say what the order gains.
 """
 
 from __future__ import annotations
@@ -32,12 +33,11 @@ import os
 import resource
 import sys
 import time
-from dataclasses import replace
 from typing import Callable, Optional
 
 import numpy as np
 
-from ..physics.model.scene import parse_scene, Scene
+from ..physics.model.scene import parse_scene
 from ..physics.model.validation import SceneError
 from ..physics.step import threads as thread_count
 from ..physics.step.kernels import prepare
@@ -55,40 +55,21 @@ GAS_WORK = 2e6
 # one step in seven in the gas) and each search costs several plain steps, so a window of
 # a few steps holds one search or none by chance; this many hold several, as a long run does.
 GAS_MIN_STEPS = 30
-# Side of the cells whose order ``in_cell_order`` numbers the particles in, in radii.
-CELL_ORDER_SIDE_RADII = 4.0
-
-
-def in_cell_order(scene: Scene) -> Scene:
-    """Return ``scene`` with its particles' rows sorted by cell (z, then y, then x).
-
-    Only positions and velocities move between rows, so every particle must
-    have the same radius, mass and any other per-particle value: the same
-    gas, its particles numbered along space. Raises ``ValueError`` otherwise.
-    """
-    state = scene.initial
-    for name in ('radius', 'inv_mass', 'restitution', 'friction', 'angular_velocity',
-                 'orientation'):
-        values = getattr(state, name)
-        if values is not None and len(values) and np.any(values != values[:1]):
-            raise ValueError(f'{scene.source}: in_cell_order needs equal particles; '
-                             f'their {name} differs')
-    if len(state) == 0:
-        return scene
-    side = CELL_ORDER_SIDE_RADII * float(state.radius[0])
-    cell = np.floor((state.position - state.position.min(axis=0)) / side).astype(np.int64)
-    cells = cell.max(axis=0) + 1
-    key = (cell[:, 2] * cells[1] + cell[:, 1]) * cells[0] + cell[:, 0]
-    order = np.argsort(key, kind='stable')
-    initial = replace(state, position=state.position[order], velocity=state.velocity[order])
-    return replace(scene, initial=initial)
 
 
 def _state_digest(world: World) -> str:
-    """Return a short digest of the positions and velocities, bit for bit."""
-    digest = hashlib.sha256(np.ascontiguousarray(world.state.position).tobytes())
-    digest.update(np.ascontiguousarray(world.state.velocity).tobytes())
+    """Return a short digest of the positions and velocities in id order, bit for bit."""
+    state = world.state.in_id_order()
+    digest = hashlib.sha256(np.ascontiguousarray(state.position).tobytes())
+    digest.update(np.ascontiguousarray(state.velocity).tobytes())
     return digest.hexdigest()[:12]
+
+
+def in_id_order(world: World) -> World:
+    """Turn ``world``'s spatial order off: its rows stay in id order at any size."""
+    if world.pipeline.spatial_order is not None:
+        world.pipeline.spatial_order.min_particles = sys.maxsize
+    return world
 
 
 def _resident_bytes() -> int:
@@ -114,15 +95,17 @@ def _pair_searches(world: World) -> int:
 
 
 def time_case(make: Callable[[], object], threads: int, warmup: int, steps: int,
-              baseline: Optional[int] = None) -> dict:
+              baseline: Optional[int] = None,
+              adjust: Callable[[World], World] = lambda world: world) -> dict:
     """Step a fresh world of ``make()`` on ``threads``; return its timing and final digest.
 
     ``baseline``: the resident bytes its memory is counted over (None: now).
+    ``adjust``: applied to the world before its first step (``in_id_order``).
     """
     before, peak_before = _resident_bytes(), _peak_bytes()
     if baseline is not None:
         before = baseline
-    world = World(make(), threads=threads)
+    world = adjust(World(make(), threads=threads))
     world.step(warmup)
     searches = _pair_searches(world)
     start, cpu_start = time.perf_counter(), time.process_time()
@@ -139,8 +122,8 @@ def time_case(make: Callable[[], object], threads: int, warmup: int, steps: int,
             else None}
 
 
-def cases(args: argparse.Namespace) -> list[tuple[str, Callable[[], object], int, int]]:
-    """Return (label, scene factory, warm-up steps, timed steps) of every case asked for."""
+def cases(args: argparse.Namespace) -> list[tuple]:
+    """Return (label, scene factory, warm-up steps, timed steps, world adjustment) per case."""
     out = []
     for preset in args.presets:
         for count in sorted(args.counts):
@@ -148,18 +131,24 @@ def cases(args: argparse.Namespace) -> list[tuple[str, Callable[[], object], int
 
             def make(c=count, p=preset):
                 return parse_scene(dict(gas_scene(c, fraction=GAS_FRACTION), accuracy=p), 'gas')
-            out.append((f'gas {count:,} ({preset})', make, 3, steps))
-            if args.cell_order:
-                out.append((f'gas {count:,} ({preset}, cell order)',
-                            lambda m=make: in_cell_order(m()), 3, steps))
+            out.append((f'gas {count:,} ({preset})', make, 3, steps, _as_built))
+            if args.id_order:
+                out.append((f'gas {count:,} ({preset}, id order)', make, 3, steps,
+                            in_id_order))
     for preset in args.presets:
         if args.pour_steps:
             out.append((f'pour {POUR_COUNT:,} ({preset})',
-                        lambda p=preset: pour3d(POUR_COUNT, accuracy=p), 1, args.pour_steps))
+                        lambda p=preset: pour3d(POUR_COUNT, accuracy=p), 1, args.pour_steps,
+                        _as_built))
         if args.pile_steps:
             out.append((f'pile 240 ({preset})', lambda p=preset: shipped_pile(p), 1,
-                        args.pile_steps))
+                        args.pile_steps, _as_built))
     return out
+
+
+def _as_built(world: World) -> World:
+    """Return ``world`` as the scene built it."""
+    return world
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -176,8 +165,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--pile-steps', type=int, default=480,
                         help='timed steps of the shipped pile after its first (default 480; '
                              '0: no pile)')
-    parser.add_argument('--cell-order', action='store_true',
-                        help='also time each gas with its rows in cell order (in_cell_order)')
+    parser.add_argument('--id-order', action='store_true',
+                        help='also time each gas with its rows kept in id order (the spatial '
+                             'order off)')
 
 
 def run(args: argparse.Namespace) -> int:
@@ -203,10 +193,10 @@ def run(args: argparse.Namespace) -> int:
           'peak memory per particle (B) | full pair searches |')
     print('|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|')
     identical = True
-    for label, make, warmup, steps in cases(args):
+    for label, make, warmup, steps, adjust in cases(args):
         base = None
         for count in counts:
-            row = time_case(make, count, warmup, steps, baseline)
+            row = time_case(make, count, warmup, steps, baseline, adjust)
             base = base or row
             same = row['digest'] == base['digest']
             identical &= same

@@ -62,7 +62,7 @@ class RunRecording:
         if not recorder.active:
             return
         recorder.write('clock', clock_bytes(t), t)
-        recorder.write_state(world.state, t, FRAME_ID)
+        recorder.write_state(world.state.in_id_order(), t, FRAME_ID)
         recorder.write_impacts(world.take_impacts(), t, FRAME_ID)
         recorder.write('status', string_bytes(json.dumps(self.status())), t)
 

@@ -32,6 +32,17 @@ class ImpactLog:
     def __init__(self) -> None:
         """Start empty."""
         self._chunks: list[np.ndarray] = []
+        # The id of each row the stages record by (``name_rows``); None: rows are ids.
+        self._ids: Optional[np.ndarray] = None
+
+    def name_rows(self, ids: np.ndarray) -> None:
+        """Record from now on the particle ``ids[row]`` for each row a stage records.
+
+        The world hands over its state's ids before each step: the stages
+        know rows, a reader wants ids (rows shift at a delete, and a large
+        world renumbers its rows in place, which this array follows).
+        """
+        self._ids = ids
 
     def __len__(self) -> int:
         """Return the number of impacts waiting to be taken."""
@@ -49,10 +60,22 @@ class ImpactLog:
         chunk['j'] = j
         chunk['point'] = point
         chunk['normal'] = normal
+        if self._ids is not None:
+            self._name(chunk)
         chunk['normal_impulse'] = normal_impulse
         chunk['tangential_impulse'] = tangential_impulse
         chunk['closing_speed'] = closing_speed
         self._chunks.append(chunk)
+
+    def _name(self, chunk: np.ndarray) -> None:
+        """Turn ``chunk``'s rows into ids; a pair keeps i < j, its normal from j to i."""
+        wall = chunk['j'] == WALL
+        chunk['i'] = self._ids[chunk['i']]
+        chunk['j'] = np.where(wall, WALL, self._ids[np.where(wall, 0, chunk['j'])])
+        swap = ~wall & (chunk['i'] > chunk['j'])
+        if swap.any():
+            chunk['i'][swap], chunk['j'][swap] = chunk['j'][swap], chunk['i'][swap].copy()
+            chunk['normal'][swap] *= -1.0
 
     def take(self) -> np.ndarray:
         """Return the impacts recorded since the last call (IMPACT_DTYPE) and forget them."""

@@ -12,9 +12,31 @@ from typing import Optional
 import numpy as np
 
 
+def ids_ascending(ids: np.ndarray) -> bool:
+    """Say whether ``ids`` ascend strictly (rows in id order)."""
+    return bool(ids.size < 2 or np.all(ids[1:] > ids[:-1]))
+
+
+def rows_named(ids: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    """Return the row of each ``wanted`` id among ``ids`` (unique, any order); -1 if absent."""
+    wanted = np.asarray(wanted, dtype=np.int64)
+    if not ids.size:
+        return np.full(wanted.shape, -1, dtype=np.int64)
+    by_id = None if ids_ascending(ids) else np.argsort(ids, kind='stable')
+    ordered = ids if by_id is None else ids[by_id]
+    at = np.minimum(np.searchsorted(ordered, wanted), ids.size - 1)
+    rows = at if by_id is None else by_id[at]
+    return np.where(ordered[at] == wanted, rows, -1).astype(np.int64)
+
+
 @dataclass
 class ParticleState:
-    """All particles of a world, one row per particle, in id order.
+    """All particles of a world, one row per particle.
+
+    The rows are in id order, except in a world large enough to keep them
+    in spatial order (``stages/ordering``): there an id names a particle,
+    ``rows_named`` finds its row, and ``in_id_order`` gives the state in
+    id order.
 
     Units are SI (REP-103): metres, metres per second, kilograms.
     ``inv_mass`` is 1/mass; 0 marks a static particle of infinite mass,
@@ -111,6 +133,12 @@ class ParticleState:
             value = getattr(self, f.name)
             kwargs[f.name] = None if value is None else value[rows].copy()
         return ParticleState(**kwargs)
+
+    def in_id_order(self) -> 'ParticleState':
+        """Return this state if its rows are in id order, else a copy sorted by id."""
+        if ids_ascending(self.ids):
+            return self
+        return self.subset(np.argsort(self.ids, kind='stable'))
 
     def with_arrays(self, **arrays: np.ndarray) -> 'ParticleState':
         """Return a shallow copy with some arrays replaced."""

@@ -167,6 +167,24 @@ CELL_MARGIN = 4e-6
 # The bound on the cells per axis that rounding argument assumes.
 DENSE_AXIS_CELLS = 2 ** 24
 
+# --- Spatial order of the rows (stages/ordering) -------------------------------------------------
+
+# A world of at least this many particles (default 50,000) keeps its rows in
+# cell order: at each full pair search the rows are renumbered along space
+# (the ids stay), so neighbours sit near each other in memory and every pair
+# reads its partner from nearby. A smaller world keeps its rows in id order,
+# where a random order costs little (its arrays fit the caches). Lower it
+# and a mid-sized world runs in a different (equally valid) contact order.
+SPATIAL_ORDER_MIN_PARTICLES = 50_000
+
+# Side of the cells the rows are ordered by, in mean radii (default 4): each
+# cell's rows are contiguous, cells by z, then y, then x. At most
+# SPATIAL_ORDER_CELLS_PER_PARTICLE cells per particle: a sparser world gets
+# wider cells, so the ordering's work and memory stay proportional to n.
+SPATIAL_ORDER_CELL_RADII = 4.0
+
+SPATIAL_ORDER_CELLS_PER_PARTICLE = 2.0
+
 # --- Memory of a step (stages/detection) ---------------------------------------------------------
 
 # The most memory a step's candidate pairs may take, bytes (default 2 GiB).

@@ -25,6 +25,7 @@ from scipy.spatial import cKDTree
 from .effects import Walls
 from .particles import MAX_COORDINATE, MAX_SPEED
 from .scene import parse_request, parse_spawn_data
+from .state import rows_named
 from .validation import fail, reject_unknown_keys, vector
 
 # The request functions take a ``World`` (typed Any: world.py imports this
@@ -144,10 +145,9 @@ def parse_ids(value: Any, where: str, limit: int) -> np.ndarray:
 
 
 def rows_of(ids: np.ndarray, wanted: np.ndarray, where: str) -> np.ndarray:
-    """Return the rows of ``wanted`` ids in the ascending ``ids``; raise naming a missing one."""
-    rows = np.searchsorted(ids, wanted)
-    found = rows < ids.size
-    found[found] = ids[rows[found]] == wanted[found]
+    """Return the rows of ``wanted`` ids among ``ids``; raise naming a missing one."""
+    rows = rows_named(ids, wanted)
+    found = rows >= 0
     if not found.all():
         missing = wanted[~found]
         more = f' (and {missing.size - 1} more)' if missing.size > 1 else ''

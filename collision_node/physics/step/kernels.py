@@ -17,13 +17,15 @@ from ..stages.events import event_kernels, resting_kernels
 from ..stages.detection import grid_kernels, narrowphase_kernels
 from ..stages.correction import separation_kernels
 from ..stages.sleeping import sleep_kernels
+from ..stages.ordering import order_kernels
 from . import step_kernels
 from ..stages.swept import swept_kernels
 from .numba_cache import CACHE_DIR
 
 # Each module gives warm_up() (call every kernel once on a tiny problem) and kernels().
 MODULES = (primitives, contact_kernels, narrowphase_kernels, separation_kernels, swept_kernels,
-           sleep_kernels, event_kernels, resting_kernels, grid_kernels, wall_kernels, step_kernels)
+           sleep_kernels, event_kernels, resting_kernels, grid_kernels, wall_kernels, step_kernels,
+           order_kernels)
 
 _PREPARED = False
 

@@ -160,6 +160,13 @@ class Stage:
         """Return one line that says what the stage does."""
         return self.name
 
+    def rows_moved(self, order: np.ndarray) -> None:
+        """Hear that the rows were renumbered (new row k is old row ``order[k]``).
+
+        A stage that keeps anything by row from step to step drops or
+        renames it here; the default keeps nothing.
+        """
+
 
 class Pipeline:
     """An ordered list of stages run once per (sub)step."""
@@ -171,6 +178,9 @@ class Pipeline:
         # Wall seconds each stage has run, by name in run order (the step's
         # profile, see ``timing``): two perf_counter calls per stage and step.
         self.seconds: dict[str, float] = dict.fromkeys(self.names, 0.0)
+        # What keeps a large world's rows in spatial order (set by the plan:
+        # ``stages/ordering.SpatialOrder``), None where nothing does.
+        self.spatial_order = None
 
     @property
     def names(self) -> list[str]:
@@ -188,6 +198,11 @@ class Pipeline:
         stage.run(ctx)
         elapsed = perf_counter() - start
         self.seconds[stage.name] = self.seconds.get(stage.name, 0.0) + elapsed
+
+    def rows_moved(self, order: np.ndarray) -> None:
+        """Tell every stage that the rows were renumbered (``Stage.rows_moved``)."""
+        for stage in self.stages:
+            stage.rows_moved(order)
 
     def frame(self, before: Stage, after: Stage) -> None:
         """Time ``before`` and ``after``, stages a subclass runs around the list, in place."""

@@ -18,6 +18,7 @@ from ..stages.events.event_driven import EventDrivenStage
 from ..stages.motion.gravity import GravityStage
 from ..stages.detection.narrowphase import NarrowphaseStage
 from ..stages.correction.separation import SeparationStage
+from ..stages.ordering.spatial_order import SpatialOrder
 from ..stages.solve.sequential_impulses import SequentialImpulseStage
 from ..stages.sleeping.sleep import SleepingPipeline
 from ..stages.motion.spin import SpinStage
@@ -39,19 +40,34 @@ def needs_contact_solve(effects: Effects) -> bool:
                 and effects.restitution_threshold is None)
 
 
-def build_pipeline(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
+def build_pipeline(effects: Effects, accuracy: AccuracySettings,
+                   spatial_order: bool = True) -> Pipeline:
     """Assemble the stages a scene's effects and accuracy settings call for.
 
     Sleeping (``accuracy.sleep_time``) frames a step-mode pipeline with the
     ``wake`` and ``sleep`` stages only under gravity, the one effect that
     makes particles rest; without it the setting costs nothing.
+    ``spatial_order``: a large world's rows are put in cell order at each
+    full search of the step's first pair list (``stages/ordering``); the
+    event mode's fallback, which steps the event stage's rows, goes without.
     """
     pipeline = _build(effects, accuracy)
     if accuracy.mode == 'step' and accuracy.sleep_time is not None \
             and effects.gravity is not None:
-        return SleepingPipeline(pipeline.stages, effects.gravity, accuracy.sleep_time,
-                                note=pipeline.note)
+        pipeline = SleepingPipeline(pipeline.stages, effects.gravity, accuracy.sleep_time,
+                                    note=pipeline.note)
+    if spatial_order:
+        _order_rows(pipeline)
     return pipeline
+
+
+def _order_rows(pipeline: Pipeline) -> None:
+    """Give the step's first pair list the spatial order, told to the whole pipeline."""
+    for stage in pipeline.stages:
+        search = stage.pair_search if isinstance(stage, SweptContactStage) else stage
+        if isinstance(search, BroadphaseStage):
+            search.order = pipeline.spatial_order = SpatialOrder(pipeline)
+            return
 
 
 def _build(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
@@ -62,7 +78,8 @@ def _build(effects: Effects, accuracy: AccuracySettings) -> Pipeline:
         # so the stage needs no import of the plan.
         return Pipeline([EventDrivenStage(
             effects, accuracy,
-            fallback=lambda: build_pipeline(effects, PRESETS[EVENT_FALLBACK]))])
+            fallback=lambda: build_pipeline(effects, PRESETS[EVENT_FALLBACK],
+                                            spatial_order=False))])
     if accuracy.ccd:
         return _swept_pipeline(effects, accuracy)
     # Discrete detection at the step end (the lecture's test), with every effect.

@@ -80,7 +80,9 @@ class World:
         # Energy changed by commands (delete, teleport, impulse), so the balance holds.
         self.energy_commanded = 0.0
         # Ids are stable: the scene's are 0..n-1, a spawn takes ids after the
-        # largest ever given, a delete leaves a gap (ids stay ascending by row).
+        # largest ever given, a delete leaves a gap. Rows are in id order
+        # unless the world is large enough to keep them in spatial order
+        # (``stages/ordering``): ``rows`` finds an id's row either way.
         self.next_id = int(self.state.ids.max()) + 1 if len(self.state) else 0
 
     def _with_spin_state(self, state: ParticleState) -> ParticleState:
@@ -132,6 +134,8 @@ class World:
         for _ in range(count):
             begin = perf_counter()
             start = self.time
+            if self.impact_log is not None:
+                self.impact_log.name_rows(self.state.ids)
             for k in range(substeps):
                 run(StepContext(self.state, sub_dt, scene.dimensions, scene.effects,
                                 scene.accuracy, self.stats, time=start + k * sub_dt,

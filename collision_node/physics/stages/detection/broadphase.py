@@ -32,7 +32,7 @@ this at a request (scene load, spawn, accuracy), the stage at a step.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, TYPE_CHECKING
 
 import numpy as np
 
@@ -44,6 +44,9 @@ from ...model.validation import SceneError
 from ...model.tunables import (CLASS_RATIO, SKIN_STEPS, SKIN_MAX_RADII, SKIN_MIN_RADII,
                                MAX_MOVER_SHARE, ALL_PAIRS_UP_TO, STEP_MEMORY_BUDGET, PAIR_BYTES,
                                MAX_PATH_TESTS, SPECULATIVE_MARGIN)
+
+if TYPE_CHECKING:
+    from ..ordering.spatial_order import SpatialOrder
 
 # The pair test |p_i - p_j|^2 <= (reach_i + reach_j)^2 (1 + QUERY_SLACK) is a
 # little generous, so that rounding never drops a pair; the grid's cell
@@ -285,6 +288,9 @@ class BroadphaseStage(Stage):
         self.searches = 0              # full searches so far (for tests and benchmarks)
         self.threads = 1               # threads a search may share (the step's count)
         self.mover_updates = 0         # steps that patched the list with mover pairs
+        # Puts a large world's rows in cell order before each full search
+        # (``stages/ordering``; set by the plan on the step's first pair list).
+        self.order: Optional[SpatialOrder] = None
 
     def run(self, ctx: StepContext) -> None:
         """Store candidate pairs on the context."""
@@ -302,11 +308,11 @@ class BroadphaseStage(Stage):
                         np.einsum('ij,ij->i', state.velocity, state.velocity))
         self.threads = ctx.threads
         ctx.pair_i, ctx.pair_j = self.find(state.position, state.radius, state.velocity,
-                                           state.inv_mass, ctx.dt, extra)
+                                           state.inv_mass, ctx.dt, extra, ctx=ctx)
 
     def find(self, position: np.ndarray, radius: np.ndarray, velocity: np.ndarray,
-             inv_mass: np.ndarray, dt: float, extra: Optional[np.ndarray] = None
-             ) -> tuple[np.ndarray, np.ndarray]:
+             inv_mass: np.ndarray, dt: float, extra: Optional[np.ndarray] = None,
+             ctx: Optional[StepContext] = None) -> tuple[np.ndarray, np.ndarray]:
         """Return every pair (i < j, sorted) with |p_i - p_j| <= r_i + e_i + r_j + e_j.
 
         ``extra`` (e, default 0) is a per-particle allowance on top of the
@@ -316,7 +322,9 @@ class BroadphaseStage(Stage):
         allowance, so the list stays exactly what a fresh search would need.
         Where those pairs would be more than ``MAX_PAIRS``, the movers' are
         those whose straight paths meet (``swept_pairs``); ``StepTooLarge``
-        where even those are too many.
+        where even those are too many. With ``order`` and ``ctx`` (whose
+        state's arrays the others are), a full search first puts the rows
+        in cell order: the pairs returned name the new rows.
         """
         n = position.shape[0]
         if n <= ALL_PAIRS_UP_TO:
@@ -334,9 +342,11 @@ class BroadphaseStage(Stage):
             self._direct = False
             self._built_position = None
         if not self._list_matches(position, radius):
+            extra = self._in_cell_order(ctx, extra)
             self._rebuild(position, radius, velocity, inv_mass, dt)
         movers = self._movers(position, extra)
         if movers.size > MAX_MOVER_SHARE * n:
+            extra = self._in_cell_order(ctx, extra)
             self._rebuild(position, radius, velocity, inv_mass, dt)
             movers = self._movers(position, extra)
             if movers.size > MAX_MOVER_SHARE * n:
@@ -350,6 +360,18 @@ class BroadphaseStage(Stage):
             # The movers' reach holds too many pairs: search along their paths.
             return swept_pairs(position, radius, extra, velocity, dt, self.threads)
         return pairs
+
+    def _in_cell_order(self, ctx: Optional[StepContext], extra: np.ndarray) -> np.ndarray:
+        """Put the rows in cell order before a full search (if ordered here); rename ``extra``."""
+        if self.order is None or ctx is None:
+            return extra
+        moved = self.order.apply(ctx)
+        return extra if moved is None else extra[moved]
+
+    def rows_moved(self, order: np.ndarray) -> None:
+        """Drop the list: it names rows (the next ``find`` searches afresh)."""
+        self._built_position = None
+        self._direct = False
 
     def _movers(self, position: np.ndarray, extra: np.ndarray) -> np.ndarray:
         """Return the particles whose displacement plus allowance exceeds skin/2."""

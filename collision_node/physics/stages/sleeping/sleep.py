@@ -43,7 +43,7 @@ from ...model import energy
 from ...model.effects import GRAVITY_THRESHOLD_STEPS
 from .sleep_kernels import (IslandParticles, Islands, near_sleepers, settle_islands,
                             sleepers_within_reach, Stillness, WakeReach)
-from ...model.state import ParticleState
+from ...model.state import ParticleState, rows_named
 from ...step.pipeline import Pipeline, Stage, StepContext
 from ...model.tunables import CONTACT_MARGIN, DIRECT_PAIRS
 
@@ -209,10 +209,10 @@ class SleepStage(Stage):
         rep = np.full(n, -1, dtype=np.int64)
         sleeping = np.flatnonzero(s.asleep)
         if sleeping.size:
-            rows = np.minimum(np.searchsorted(s.ids, s.island[sleeping]), n - 1)
             # A representative always exists (a delete wakes its island); if
             # not, the particle stands for itself.
-            rep[sleeping] = np.where(s.ids[rows] == s.island[sleeping], rows, sleeping)
+            rows = rows_named(s.ids, s.island[sleeping])
+            rep[sleeping] = np.where(rows >= 0, rows, sleeping)
         pair_i = ctx.pair_i if ctx.pair_i is not None else _NO_PAIRS
         pair_j = ctx.pair_j if ctx.pair_j is not None else _NO_PAIRS
         angular = s.angular_velocity if s.angular_velocity is not None else _NO_SPIN
@@ -262,6 +262,14 @@ class SleepingPipeline(Pipeline):
         if self.shared.anyone_awake:
             super().run(ctx)
         self.run_stage(self.sleep, ctx)
+
+    def rows_moved(self, order: np.ndarray) -> None:
+        """Rename the real inverse masses kept while sleepers are static, then tell every stage."""
+        if self.shared.real_inv_mass is not None:
+            self.shared.real_inv_mass = self.shared.real_inv_mass[order]
+        self.wake.rows_moved(order)
+        self.sleep.rows_moved(order)
+        super().rows_moved(order)
 
     def explain(self) -> str:
         """Return the numbered stages, with ``wake`` before and ``sleep`` after them.

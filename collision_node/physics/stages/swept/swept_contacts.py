@@ -118,11 +118,12 @@ class SweptContactStage(Stage):
         """Advance positions to the end of the step in one compiled call; book and record."""
         s, dt = ctx.state, ctx.dt
         n = len(s)
-        dynamic = s.dynamic
         self._pairs.threads = ctx.threads
+        # (A full search may put the rows in cell order: read them after it.)
         pair_i, pair_j = self._pairs.find(s.position, s.radius, s.velocity, s.inv_mass, dt,
-                                          extra=self._travel(ctx))
+                                          extra=self._travel(ctx), ctx=ctx)
         ctx.pair_i, ctx.pair_j = pair_i, pair_j
+        dynamic = s.dynamic
         if dynamic.all():
             # Every pair can move (a gas): the pairs as they are, no mask to build.
             a = np.ascontiguousarray(pair_i, dtype=np.int64)
@@ -217,6 +218,15 @@ class SweptContactStage(Stage):
                    np.ascontiguousarray(b, dtype=np.int64), TOUCH_SLOP, has_walls, low, high,
                    d, pairs, walls)
         return pairs, walls if has_walls else None
+
+    def rows_moved(self, order: np.ndarray) -> None:
+        """Drop the pair list, which names rows."""
+        self._pairs.rows_moved(order)
+
+    @property
+    def pair_search(self) -> BroadphaseStage:
+        """Return the stage's own pair list (a Verlet list widened by each path)."""
+        return self._pairs
 
     @property
     def searches(self) -> int:
