@@ -17,10 +17,12 @@ import yaml
 
 from collision_node import World
 from collision_node.bench.throughput import gas_scene
+from collision_node.id_order import id_order, InIdOrder
 from collision_node.physics.model.scene import parse_scene
 from collision_node.physics.model.state import ParticleState, rows_named
 from collision_node.physics.model.tunables import SPATIAL_ORDER_MIN_PARTICLES
 from collision_node.physics.stages.ordering.order_kernels import cell_order
+from collision_node.recording.recorder import FRAME_MESSAGES
 from collision_node.scenarios import pour3d
 
 STEPPED = ('fast', 'balanced', 'accurate')
@@ -222,3 +224,29 @@ def test_a_world_below_the_bound_keeps_its_rows_in_id_order():
 def test_the_event_mode_keeps_no_spatial_order():
     world = World(parse_scene(dict(gas_scene(500, fraction=0.1), accuracy='exact'), 'gas'))
     assert world.pipeline.spatial_order is None
+
+
+@pytest.mark.parametrize('span', [1, 10])
+def test_outputs_read_an_ordered_world_in_id_order(span):
+    # span 1: ids 0..n-1 (ordered by placing rows at their ids); 10: sparse ids (sorted).
+    world = gas_world('fast', count=2000)
+    world.step(10)
+    state = world.state.with_arrays(ids=world.state.ids * span)
+    assert not np.all(np.diff(state.ids) > 0)
+    order = np.argsort(state.ids)
+    assert np.array_equal(id_order(state.ids), order)
+    view = InIdOrder(state)
+    assert len(view) == len(state)
+    for name in ('ids', 'position', 'velocity', 'radius', 'inv_mass', 'mass'):
+        assert np.array_equal(getattr(view, name), getattr(state, name)[order])
+    assert view.angular_velocity is None
+    by_id = state.in_id_order()
+    for key, build in FRAME_MESSAGES.items():
+        assert build(view, 1.5, 'world') == build(by_id, 1.5, 'world'), key
+
+
+def test_outputs_read_a_state_in_id_order_as_it_is():
+    world = World(parse_scene(dict(gas_scene(300, fraction=0.1), accuracy='fast'), 'gas'))
+    view = InIdOrder(world.state)
+    assert view.position is world.state.position
+    assert world.state.in_id_order() is world.state

@@ -22,6 +22,7 @@ from typing import Any, Optional
 from msg_adapters import clock_bytes
 from msg_adapters.strings import string_bytes
 
+from ..id_order import InIdOrder
 from ..ros.status import status_report
 from .recorder import default_names, Recorder
 
@@ -62,7 +63,7 @@ class RunRecording:
         if not recorder.active:
             return
         recorder.write('clock', clock_bytes(t), t)
-        recorder.write_state(world.state.in_id_order(), t, FRAME_ID)
+        recorder.write_state(InIdOrder(world.state), t, FRAME_ID)
         recorder.write_impacts(world.take_impacts(), t, FRAME_ID)
         recorder.write('status', string_bytes(json.dumps(self.status())), t)
 

@@ -33,6 +33,7 @@ from visualization_msgs.msg import MarkerArray
 from msg_adapters import clock_bytes, velocities_bytes
 from msg_adapters.strings import string_bytes
 
+from ..id_order import InIdOrder
 from ..physics.model.accuracy import parse_accuracy_text
 from ..physics.step.kernels import prepare as prepare_kernels
 from ..physics.model.scene import load_scene
@@ -438,10 +439,11 @@ class CollisionNode(Node):
 
         A message is built only when somebody subscribes or the node records;
         the recording gets the bytes that are published. Particles go out in
-        id order (a large world's rows are in spatial order: sorted once here).
+        id order (a large world's rows are in spatial order: each array a
+        message reads is sorted once per tick).
         """
         t, frame = self.world.time, self.frame_id
-        state = functools.cache(self.world.state.in_id_order)
+        state = functools.cache(lambda: InIdOrder(self.world.state))
         recorder = self.recorder if self.recorder is not None and self.recorder.active else None
         if self.publish_clock:
             clock = clock_bytes(t)
