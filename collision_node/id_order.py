@@ -14,23 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from .physics.model.state import ids_ascending, ParticleState
-
-# Ids spread over at most this many times the particle count are ordered by
-# placing each row at its id (linear time); sparser ids are sorted.
-DENSE_IDS = 4
-
-
-def id_order(ids: np.ndarray) -> np.ndarray:
-    """Return the rows sorted by id (``ids`` unique, non-negative)."""
-    if not ids.size:
-        return np.zeros(0, dtype=np.int64)
-    span = int(ids.max()) + 1
-    if span > DENSE_IDS * ids.size:
-        return np.argsort(ids, kind='stable')
-    row_at = np.full(span, -1, dtype=np.int64)
-    row_at[ids] = np.arange(ids.size)
-    return row_at[row_at >= 0]
+from .physics.model.state import id_order, ids_ascending, ParticleState
 
 
 class InIdOrder:

@@ -17,9 +17,9 @@ import yaml
 
 from collision_node import World
 from collision_node.bench.throughput import gas_scene
-from collision_node.id_order import id_order, InIdOrder
+from collision_node.id_order import InIdOrder
 from collision_node.physics.model.scene import parse_scene
-from collision_node.physics.model.state import ParticleState, rows_named
+from collision_node.physics.model.state import id_order, ParticleState, rows_named
 from collision_node.physics.model.tunables import SPATIAL_ORDER_MIN_PARTICLES
 from collision_node.physics.stages.ordering.order_kernels import cell_order
 from collision_node.recording.recorder import FRAME_MESSAGES

@@ -17,12 +17,29 @@ def ids_ascending(ids: np.ndarray) -> bool:
     return bool(ids.size < 2 or np.all(ids[1:] > ids[:-1]))
 
 
+# Ids spread over at most this many times the particle count are ordered by
+# placing each row at its id (linear time); sparser ids are sorted.
+DENSE_IDS = 4
+
+
+def id_order(ids: np.ndarray) -> np.ndarray:
+    """Return the rows sorted by id (``ids`` unique, non-negative)."""
+    if not ids.size:
+        return np.zeros(0, dtype=np.int64)
+    span = int(ids.max()) + 1
+    if span > DENSE_IDS * ids.size:
+        return np.argsort(ids, kind='stable')
+    row_at = np.full(span, -1, dtype=np.int64)
+    row_at[ids] = np.arange(ids.size)
+    return row_at[row_at >= 0]
+
+
 def rows_named(ids: np.ndarray, wanted: np.ndarray) -> np.ndarray:
     """Return the row of each ``wanted`` id among ``ids`` (unique, any order); -1 if absent."""
     wanted = np.asarray(wanted, dtype=np.int64)
     if not ids.size:
         return np.full(wanted.shape, -1, dtype=np.int64)
-    by_id = None if ids_ascending(ids) else np.argsort(ids, kind='stable')
+    by_id = None if ids_ascending(ids) else id_order(ids)
     ordered = ids if by_id is None else ids[by_id]
     at = np.minimum(np.searchsorted(ordered, wanted), ids.size - 1)
     rows = at if by_id is None else by_id[at]
@@ -138,7 +155,7 @@ class ParticleState:
         """Return this state if its rows are in id order, else a copy sorted by id."""
         if ids_ascending(self.ids):
             return self
-        return self.subset(np.argsort(self.ids, kind='stable'))
+        return self.subset(id_order(self.ids))
 
     def with_arrays(self, **arrays: np.ndarray) -> 'ParticleState':
         """Return a shallow copy with some arrays replaced."""
