@@ -227,9 +227,17 @@ def test_compiled_batched_solve_equals_vectorised_reference(scene):
     assert shared > 0                    # some particle took impulses from two contacts
 
 
+def test_the_compile_shares_hold_every_kernel_module_once():
+    from collision_node.physics.step import kernels as k
+    placed = list(k.SHARED) + [module for share in k.SHARES for module in share]
+    assert sorted(m.__name__ for m in placed) == sorted(m.__name__ for m in k.MODULES)
+    assert len(k.SHARES) == 2
+
+
 def test_first_start_says_it_compiles_and_a_cached_start_says_nothing(tmp_path):
+    # Two processes whatever the machine: the helper's share must land in the cache.
     code = ('import sys\nfrom collision_node.physics.step import kernels as k\n'
-            'took = k.prepare(lambda text: print(text, file=sys.stderr))\n'
+            'took = k.prepare(lambda text: print(text, file=sys.stderr), processes=2)\n'
             'print(took)\n')
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / 'numba'))
     # The bound only guards against a hang: a cold compile of every kernel takes minutes
@@ -238,6 +246,7 @@ def test_first_start_says_it_compiles_and_a_cached_start_says_nothing(tmp_path):
                            text=True, timeout=1800)
     assert first.returncode == 0, first.stderr
     assert 'compiling the contact kernels' in first.stderr
+    assert 'in 2 processes' in first.stderr and 'failed' not in first.stderr
     assert 'contact kernels compiled in' in first.stderr
     second = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True,
                             text=True, timeout=300)

@@ -38,6 +38,7 @@ SUBCOMMANDS: dict[str, str] = {
     'report': 'collision_node.bench.results.page',
     'stacks': 'collision_node.bench.contact.stacks',
     'scaling': 'collision_node.bench.scaling',
+    'compile': 'collision_node.bench.compile_time',
 }
 # Subcommands that write files of their own instead of a results file (as does any
 # subcommand that declares an --out of its own).
