@@ -371,3 +371,26 @@ def test_stacks_bench_refuses_a_seed_out_of_range(capsys):
     with pytest.raises(SystemExit):
         bench.main(['stacks', '--cases', 'pour_spread', '--seeds', '-1'])
     assert "-1 is outside 0 .. 2^32 - 1" in capsys.readouterr().err
+
+
+def test_compile_bench_times_each_process_count_on_a_cache_of_its_own(monkeypatch, capsys):
+    from collision_node.bench import compile_time
+    caches, seconds = [], iter([(400.0, 401.0), (1.0, 2.0), (220.0, 221.5), (0.5, 1.5)])
+
+    def fake_prepare(cache, processes):
+        caches.append((cache, processes))
+        return next(seconds)
+
+    monkeypatch.setattr(compile_time, '_prepare', fake_prepare)
+    assert bench.main(['compile', '--processes', '1', '2']) == 0
+    rows = capsys.readouterr().out.splitlines()
+    assert rows[2] == '| 1 | 400.0 | 401.0 | 1.00 | 1.00 |'
+    assert rows[3] == '| 2 | 220.0 | 221.5 | 0.55 | 0.50 |'
+    # Each count compiles into an empty cache of its own, then loads from that same cache.
+    assert [p for _, p in caches] == [1, 1, 2, 2]
+    assert caches[0][0] == caches[1][0] != caches[2][0] == caches[3][0]
+
+
+def test_compile_bench_refuses_a_count_below_one(capsys):
+    assert bench.main(['compile', '--processes', '0']) == 2
+    assert '--processes takes counts of 1 or more' in capsys.readouterr().err
