@@ -47,7 +47,8 @@ from typing import Optional
 
 import numpy as np
 
-from .separation_kernels import pay_for_lift, project_overlaps, WallBounds
+from .separation_kernels import (pay_for_lift, project_overlaps, projection_work,
+                                 ProjectionWork, WallBounds)
 from ...model.accuracy import AccuracySettings
 from ...model.effects import Walls
 from ...model.energy import lift
@@ -74,6 +75,7 @@ class SeparationStage(Stage):
         self.passes = passes
         self._bounds: Optional[WallBounds] = None
         self._bounds_of: tuple = (None, 0)         # the walls and dimensions they were built for
+        self._work: Optional[ProjectionWork] = None  # the kernel's buffers, kept clean
 
     def run(self, ctx: StepContext) -> None:
         """Move positions in place."""
@@ -157,14 +159,30 @@ class SeparationStage(Stage):
         norm = float(np.linalg.norm(g))
         up = (0.0, 0.0, 1.0) if norm == 0.0 else tuple(float(x) for x in -g / norm)
         near = ctx.near_walls
-        project_overlaps(particles, np.ascontiguousarray(s.dynamic, dtype=np.bool_), contacts,
-                         bounds, self._floors(bounds, gravity), up, passes, hold, passes > 1,
-                         parallel(ctx.threads, len(s)),
-                         (near is not None, _NO_PAIRS if near is None else near))
+        try:
+            project_overlaps(particles, np.ascontiguousarray(s.dynamic, dtype=np.bool_),
+                             contacts, bounds, self._floors(bounds, gravity), up, passes, hold,
+                             passes > 1, parallel(ctx.threads, len(s)),
+                             (near is not None, _NO_PAIRS if near is None else near),
+                             self._buffers(len(s)))
+        except BaseException:
+            self._work = None               # interrupted: the buffers may not be clean
+            raise
         # The particles moved: the list of those near a wall no longer holds.
         ctx.near_walls = None
         if particles.position is not s.position:
             s.position[...] = particles.position
+
+    def _buffers(self, n: int) -> ProjectionWork:
+        """Return the projection's per-particle buffers for ``n`` particles (kept between steps).
+
+        The kernel leaves them clean, so keeping them makes a step cost its
+        contacts rather than its particle count; rows moved by the spatial
+        order need nothing, as clean rows are all alike.
+        """
+        if self._work is None or self._work.moves.size != n:
+            self._work = projection_work(n)
+        return self._work
 
     @staticmethod
     def _floors(bounds: WallBounds, gravity: Optional[np.ndarray]) -> np.ndarray:

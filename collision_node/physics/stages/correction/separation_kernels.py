@@ -38,11 +38,21 @@ class WallBounds(NamedTuple):
 
 
 class ProjectionWork(NamedTuple):
-    """Buffers of one projection pass (reused by every pass)."""
+    """Per-particle buffers of the projection, kept by the stage from step to step.
 
-    push: np.ndarray            # (m, 2) each pair's push of its first and second, m
+    Every call reads and writes only the rows of the particles of its
+    pairs and leaves ``moves`` at zero and ``seen`` False, so a step costs
+    its contacts, not its particle count (no fresh memory to fault in).
+    """
+
     total: np.ndarray           # (n, 3) sum of each particle's pushes, m (rows of pairs)
-    moves: np.ndarray           # (n,) how many pushes move each particle (rows of pairs)
+    moves: np.ndarray           # (n,) how many pushes move each particle; 0 between calls
+    seen: np.ndarray            # (n,) bool, a particle listed for the clamps; False between calls
+
+
+def projection_work(n: int) -> ProjectionWork:
+    """Return clean buffers for ``n`` particles."""
+    return ProjectionWork(np.empty((n, 3)), np.zeros(n), np.zeros(n, dtype=np.bool_))
 
 
 @njit(cache=True, inline='always')
@@ -69,8 +79,8 @@ def _held(particles, p, shift, way, walls):
 
 
 @njit(cache=True)
-def _separate_pass(particles, contacts, active, hold, walls, work):
-    """One Jacobi projection pass over the ``active`` contacts.
+def _separate_pass(particles, contacts, listed, hold, walls, work):
+    """One Jacobi projection pass over the contacts ``listed`` (ascending).
 
     Every push is computed from the positions before the pass, summed per
     particle (all first sides in pair order, then all second sides, as
@@ -81,18 +91,16 @@ def _separate_pass(particles, contacts, active, hold, walls, work):
     position, inv_mass = particles.position, particles.inv_mass
     pair_first, pair_second = contacts.first, contacts.second
     normal, penetration = contacts.normal, contacts.penetration
-    push, total, moves = work.push, work.total, work.moves
-    m = pair_first.size
-    # Only the particles of active pairs are summed and moved: their rows are
+    total, moves = work.total, work.moves
+    push = np.empty((listed.size, 2))
+    # Only the particles of listed pairs are summed and moved: their rows are
     # cleared here (the rest of ``total`` and ``moves`` is never read).
-    for k in range(m):
-        if active[k]:
-            for p in (pair_first[k], pair_second[k]):
-                total[p, 0] = total[p, 1] = total[p, 2] = 0.0
-                moves[p] = 0.0
-    for k in range(m):
-        if not active[k]:
-            continue
+    for k in listed:
+        for p in (pair_first[k], pair_second[k]):
+            total[p, 0] = total[p, 1] = total[p, 2] = 0.0
+            moves[p] = 0.0
+    for t in range(listed.size):
+        k = listed[t]
         a, b = pair_first[k], pair_second[k]
         w_a, w_b = inv_mass[a], inv_mass[b]
         nx, ny, nz, depth = normal[k, 0], normal[k, 1], normal[k, 2], penetration[k]
@@ -105,32 +113,31 @@ def _separate_pass(particles, contacts, active, hold, walls, work):
             w_a, w_b = (0.0 if (held_a and not held_b and w_b > 0.0) else w_a,
                         0.0 if (held_b and not held_a and w_a > 0.0) else w_b)
         w_sum = w_a + w_b
-        push[k, 0] = depth * w_a / w_sum
-        push[k, 1] = depth * w_b / w_sum
+        push[t, 0] = depth * w_a / w_sum
+        push[t, 1] = depth * w_b / w_sum
         if w_a > 0.0:
             moves[a] += 1.0
         if w_b > 0.0:
             moves[b] += 1.0
-    for k in range(m):
-        if active[k]:
-            f, a = push[k, 0], pair_first[k]
-            total[a, 0] += f * normal[k, 0]
-            total[a, 1] += f * normal[k, 1]
-            total[a, 2] += f * normal[k, 2]
-    for k in range(m):
-        if active[k]:
-            f, b = push[k, 1], pair_second[k]
-            total[b, 0] += -(f * normal[k, 0])
-            total[b, 1] += -(f * normal[k, 1])
-            total[b, 2] += -(f * normal[k, 2])
-    for k in range(m):
-        if active[k]:
-            for p in (pair_first[k], pair_second[k]):
-                if moves[p] > 0.0:
-                    position[p, 0] += total[p, 0] / moves[p]
-                    position[p, 1] += total[p, 1] / moves[p]
-                    position[p, 2] += total[p, 2] / moves[p]
-                    moves[p] = 0.0       # moved once
+    for t in range(listed.size):
+        k = listed[t]
+        f, a = push[t, 0], pair_first[k]
+        total[a, 0] += f * normal[k, 0]
+        total[a, 1] += f * normal[k, 1]
+        total[a, 2] += f * normal[k, 2]
+    for t in range(listed.size):
+        k = listed[t]
+        f, b = push[t, 1], pair_second[k]
+        total[b, 0] += -(f * normal[k, 0])
+        total[b, 1] += -(f * normal[k, 1])
+        total[b, 2] += -(f * normal[k, 2])
+    for k in listed:
+        for p in (pair_first[k], pair_second[k]):
+            if moves[p] > 0.0:
+                position[p, 0] += total[p, 0] / moves[p]
+                position[p, 1] += total[p, 1] / moves[p]
+                position[p, 2] += total[p, 2] / moves[p]
+                moves[p] = 0.0       # moved once: ``moves`` is clean again
 
 
 @njit(cache=True)
@@ -485,21 +492,23 @@ def _clamp_inside(particles, dynamic, walls, shared, among):
 
 
 @njit(cache=True)
-def _clamp_candidates(near, contacts, n):
-    """Return (known, particles): ``near``'s particles and the contacts', each once.
+def _clamp_candidates(near, contacts, listed, seen):
+    """Return (known, particles): ``near``'s particles and the ``listed`` contacts', each once.
 
-    Only these can be past a wall plane after a projection pass when
-    ``near`` (known, particles) lists every particle near a plane before it
-    (``StepContext.near_walls``): a pass moves the contacts' particles only.
-    Each particle's clamp is its own, so their order does not matter.
+    Only these can be past a wall plane after the projection when ``near``
+    (known, particles) lists every particle near a plane before it
+    (``StepContext.near_walls``) and the projection moves the particles of
+    the ``listed`` contacts only. Each particle's clamp is its own, so
+    their order does not matter. ``seen`` (n,) is False on entry and exit.
     """
     if not near[0]:
         return near
-    seen = np.zeros(n, dtype=np.bool_)
-    rows = np.empty(near[1].size + 2 * contacts.first.size, dtype=np.int64)
+    rows = np.empty(near[1].size + 2 * listed.size, dtype=np.int64)
     kept = _add_unseen(near[1], seen, rows, 0)
-    kept = _add_unseen(contacts.first, seen, rows, kept)
-    kept = _add_unseen(contacts.second, seen, rows, kept)
+    for k in listed:
+        kept = _add_unseen((contacts.first[k], contacts.second[k]), seen, rows, kept)
+    for t in range(kept):
+        seen[rows[t]] = False
     return True, rows[:kept].copy()
 
 
@@ -514,9 +523,21 @@ def _add_unseen(group, seen, rows, kept):
     return kept
 
 
+@njit(cache=True)
+def _overlapping(penetration):
+    """Return the contacts that overlap (penetration > 0), ascending."""
+    listed = np.empty(penetration.size, dtype=np.int64)
+    count = 0
+    for k in range(penetration.size):
+        if penetration[k] > 0.0:
+            listed[count] = k
+            count += 1
+    return listed[:count]
+
+
 @njit(cache=True, nogil=True)
 def project_overlaps(particles, dynamic, contacts, walls, floors, up, passes, hold, in_turn,
-                     shared, near):
+                     shared, near, work):
     """Run the separation stage's projection on ``particles.position`` in place.
 
     ``passes`` Jacobi passes: the first on the narrowphase's normals and
@@ -532,11 +553,22 @@ def project_overlaps(particles, dynamic, contacts, walls, floors, up, passes, ho
     threads (the same positions). ``near`` (known, particles): with known,
     every particle near a wall plane (``StepContext.near_walls``): the clamps
     test those and the contacts' particles only (the same positions).
+    ``work`` (``ProjectionWork``, n rows) is left clean. One pass reads
+    the overlapping contacts only.
     """
     position, velocity, radius = particles.position, particles.velocity, particles.radius
     pair_first, pair_second = contacts.first, contacts.second
-    n, m = position.shape[0], pair_first.size
-    among = _clamp_candidates(near, contacts, n)
+    m = pair_first.size
+    if passes == 1 and not in_turn:
+        # One pass moves only the particles of the contacts that overlap now.
+        listed = _overlapping(contacts.penetration)
+        among = _clamp_candidates(near, contacts, listed, work.seen)
+        if listed.size:
+            _separate_pass(particles, contacts, listed, hold, walls, work)
+        if walls.present:
+            _clamp_inside(particles, dynamic, walls, shared, among)
+        return
+    among = _clamp_candidates(near, contacts, np.arange(m), work.seen)
     if in_turn:
         level = support_levels(particles, dynamic, contacts, walls, floors)
         order = support_order(contacts, level)
@@ -551,10 +583,6 @@ def project_overlaps(particles, dynamic, contacts, walls, floors, up, passes, ho
     current = ContactArrays(pair_first, pair_second, contacts.normal.copy(),
                             contacts.penetration.copy())
     normal, penetration = current.normal, current.penetration
-    active = np.empty(m, dtype=np.bool_)
-    for k in range(m):
-        active[k] = penetration[k] > 0.0
-    work = ProjectionWork(np.zeros((m, 2)), np.empty((n, 3)), np.empty(n))
     for step in range(passes):
         if m:
             if step > 0:
@@ -567,11 +595,10 @@ def project_overlaps(particles, dynamic, contacts, walls, floors, up, passes, ho
                         velocity[a, 1] - velocity[b, 1], velocity[a, 2] - velocity[b, 2])
                     normal[k, 0], normal[k, 1], normal[k, 2] = nx, ny, nz
                     penetration[k] = radius[a] + radius[b] - distance
-                    active[k] = penetration[k] > 0.0
-                    overlapping = overlapping or active[k]
+                    overlapping = overlapping or penetration[k] > 0.0
                 if not overlapping and not walls.present:
                     return
-            _separate_pass(particles, current, active, hold, walls, work)
+            _separate_pass(particles, current, _overlapping(penetration), hold, walls, work)
         if walls.present:
             _clamp_inside(particles, dynamic, walls, shared, among)
 
@@ -655,10 +682,11 @@ def warm_up() -> None:
     walls = WallBounds(True, np.full(3, -10.0), np.full(3, 10.0), 3,
                        np.zeros(1, dtype=np.int64), np.full(1, -10.0), np.ones(1))
     start = particles.position.copy()
-    for in_turn in (False, True):
+    for in_turn, passes in ((False, 1), (False, 2), (True, 2)):
         for near in ((False, np.zeros(0, dtype=np.int64)), (True, np.arange(1))):
             project_overlaps(particles, dynamic, contacts, walls, np.ones(1, dtype=np.bool_),
-                             (0.0, 1.0, 0.0), 2, True, in_turn, False, near)
+                             (0.0, 1.0, 0.0), passes, True, in_turn, False, near,
+                             projection_work(2))
     pay_for_lift(particles, dynamic, pair_first, pair_second, start, np.ones(2), np.zeros(2))
 
 
