@@ -394,3 +394,24 @@ def test_compile_bench_times_each_process_count_on_a_cache_of_its_own(monkeypatc
 def test_compile_bench_refuses_a_count_below_one(capsys):
     assert bench.main(['compile', '--processes', '0']) == 2
     assert '--processes takes counts of 1 or more' in capsys.readouterr().err
+
+
+def test_scaling_bench_weighs_a_large_gas_alone_in_a_fresh_process():
+    from collision_node.bench import scaling
+    held = np.ones(50_000_000)         # 400 MB here: 200,000 B per particle if counted there
+    small = scaling.case_memory(2000, 'fast', 1, 2, False)
+    assert held[-1] == 1.0 and 0 < small < 50_000    # the world it built alone, per particle
+    args = bench_args_for_scaling(scaling, [2000, scaling.MEMORY_FROM])
+    weighed = {case[0]: case[5] for case in scaling.cases(args)}
+    assert weighed['gas 2,000 (fast)'] is None
+    assert weighed[f'gas {scaling.MEMORY_FROM:,} (fast)'] == (scaling.MEMORY_FROM, 'fast', False)
+    assert weighed[f'gas {scaling.MEMORY_FROM:,} (fast, id order)'] == (
+        scaling.MEMORY_FROM, 'fast', True)
+    assert weighed['pour 10,000 (fast)'] is None
+
+
+def bench_args_for_scaling(scaling, counts):
+    import argparse
+    parser = argparse.ArgumentParser()
+    scaling.add_arguments(parser)
+    return parser.parse_args(['--counts', *map(str, counts), '--presets', 'fast', '--id-order'])

@@ -10,12 +10,11 @@ particle-step, the speed-up over one thread and the parallel efficiency
 one-thread run's (it must be), and how many of the timed steps searched the
 pair list afresh (each costs several plain steps; a gas case times at least
 ``GAS_MIN_STEPS`` steps so that several fall in its window, as in a long
-run). The memory column is the process's peak resident memory while the
-case ran over what it held before the first case, per particle, where the
-case raised the process's peak (else '-': an earlier, larger case set it).
-A stepping process keeps freed memory for reuse (``step/memory.py``), so
-memory an earlier case freed is counted against the case that reuses it:
-an upper bound for the case alone.
+run). The memory column is a gas case of at least ``MEMORY_FROM``
+particles run again alone, in a fresh process (kernels loaded and the
+scene generated first): its peak resident memory over what it held before
+the world was built, per particle. In the timing process an earlier case's freed memory, kept for
+reuse (``step/memory.py``), would count against the case that reuses it.
 
 A world of at least ``SPATIAL_ORDER_MIN_PARTICLES`` keeps its rows in
 cell order (``physics/stages/ordering``), renumbered at each full pair
@@ -31,9 +30,10 @@ import argparse
 import hashlib
 import os
 import resource
+import subprocess
 import sys
 import time
-from typing import Callable, Optional
+from typing import Callable
 
 import numpy as np
 
@@ -82,8 +82,55 @@ def _resident_bytes() -> int:
 
 
 def _peak_bytes() -> int:
-    """Return this process's peak resident memory so far, bytes."""
+    """Return this process's peak resident memory so far, bytes.
+
+    Linux's VmHWM, which ``_forget_peak`` resets; ``ru_maxrss`` (elsewhere)
+    also counts the parent's resident memory when the process was forked.
+    """
+    try:
+        with open('/proc/self/status') as status:
+            for line in status:
+                if line.startswith('VmHWM:'):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+# Gas cases of at least this many particles measure their memory alone, in a fresh process.
+MEMORY_FROM = 100_000
+
+
+def case_memory(count: int, preset: str, threads: int, steps: int, id_order: bool) -> float:
+    """Return the peak bytes per particle of a gas case run alone in a fresh process."""
+    code = ('from collision_node.bench.scaling import print_case_memory\n'
+            f'print_case_memory({count}, {preset!r}, {threads}, {steps}, {id_order})\n')
+    done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                          check=True)
+    return float(done.stdout.split()[-1])
+
+
+def print_case_memory(count: int, preset: str, threads: int, steps: int,
+                      id_order: bool) -> None:
+    """Step one gas case ``steps`` steps; print its peak bytes per particle (a fresh process)."""
+    prepare()
+    scene = parse_scene(dict(gas_scene(count, fraction=GAS_FRACTION), accuracy=preset), 'gas')
+    _forget_peak()
+    before = _resident_bytes()
+    world = World(scene, threads=threads)
+    if id_order:
+        world = in_id_order(world)
+    world.step(steps)
+    print((_peak_bytes() - before) / count)
+
+
+def _forget_peak() -> None:
+    """Start the process's peak resident memory afresh from now (Linux; elsewhere nothing)."""
+    try:
+        with open('/proc/self/clear_refs', 'w') as clear_refs:
+            clear_refs.write('5')
+    except OSError:
+        pass
 
 
 def _pair_searches(world: World) -> int:
@@ -95,16 +142,11 @@ def _pair_searches(world: World) -> int:
 
 
 def time_case(make: Callable[[], object], threads: int, warmup: int, steps: int,
-              baseline: Optional[int] = None,
               adjust: Callable[[World], World] = lambda world: world) -> dict:
     """Step a fresh world of ``make()`` on ``threads``; return its timing and final digest.
 
-    ``baseline``: the resident bytes its memory is counted over (None: now).
     ``adjust``: applied to the world before its first step (``in_id_order``).
     """
-    before, peak_before = _resident_bytes(), _peak_bytes()
-    if baseline is not None:
-        before = baseline
     world = adjust(World(make(), threads=threads))
     world.step(warmup)
     searches = _pair_searches(world)
@@ -116,14 +158,16 @@ def time_case(make: Callable[[], object], threads: int, warmup: int, steps: int,
     n = len(world.state)
     return {'threads': threads, 'particles': n, 'steps': steps,
             'ns': seconds / (steps * n) * 1e9, 'cpu_ns': cpu / (steps * n) * 1e9,
-            'ms': seconds / steps * 1e3, 'digest': _state_digest(world), 'searches': searches,
-            # Only a case that raised the process's peak can say what it held at its peak.
-            'bytes_per_particle': (_peak_bytes() - before) / n if _peak_bytes() > peak_before
-            else None}
+            'ms': seconds / steps * 1e3, 'digest': _state_digest(world), 'searches': searches}
 
 
 def cases(args: argparse.Namespace) -> list[tuple]:
-    """Return (label, scene factory, warm-up steps, timed steps, world adjustment) per case."""
+    """Return the cases to time, each a tuple.
+
+    (label, scene factory, warm-up steps, timed steps, world adjustment,
+    memory case): the memory case is (count, preset, id order) for a gas of
+    at least ``MEMORY_FROM`` particles, else None.
+    """
     out = []
     for preset in args.presets:
         for count in sorted(args.counts):
@@ -131,18 +175,20 @@ def cases(args: argparse.Namespace) -> list[tuple]:
 
             def make(c=count, p=preset):
                 return parse_scene(dict(gas_scene(c, fraction=GAS_FRACTION), accuracy=p), 'gas')
-            out.append((f'gas {count:,} ({preset})', make, 3, steps, _as_built))
+            weighed = count >= MEMORY_FROM
+            out.append((f'gas {count:,} ({preset})', make, 3, steps, _as_built,
+                        (count, preset, False) if weighed else None))
             if args.id_order:
                 out.append((f'gas {count:,} ({preset}, id order)', make, 3, steps,
-                            in_id_order))
+                            in_id_order, (count, preset, True) if weighed else None))
     for preset in args.presets:
         if args.pour_steps:
             out.append((f'pour {POUR_COUNT:,} ({preset})',
                         lambda p=preset: pour3d(POUR_COUNT, accuracy=p), 1, args.pour_steps,
-                        _as_built))
+                        _as_built, None))
         if args.pile_steps:
             out.append((f'pile 240 ({preset})', lambda p=preset: shipped_pile(p), 1,
-                        args.pile_steps, _as_built))
+                        args.pile_steps, _as_built, None))
     return out
 
 
@@ -181,7 +227,6 @@ def run(args: argparse.Namespace) -> int:
         return 2
     # Compiled (or loaded) before any case: a first start's compile is no case's time.
     compile_seconds = prepare()
-    baseline = _resident_bytes()
     load = os.getloadavg()
     print(f'Parallel step: {os.cpu_count()} cores, numba pool of {thread_count.available()} '
           'threads, load average '
@@ -190,18 +235,19 @@ def run(args: argparse.Namespace) -> int:
     print()
     print('| case | threads | steps | ms per step | ns per particle-step | '
           'CPU ns per particle-step | speed-up | efficiency | same state as 1 thread | '
-          'peak memory per particle (B) | full pair searches |')
+          'peak memory per particle, alone (B) | full pair searches |')
     print('|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|')
     identical = True
-    for label, make, warmup, steps, adjust in cases(args):
+    for label, make, warmup, steps, adjust, weighed in cases(args):
         base = None
         for count in counts:
-            row = time_case(make, count, warmup, steps, baseline, adjust)
+            row = time_case(make, count, warmup, steps, adjust)
             base = base or row
             same = row['digest'] == base['digest']
             identical &= same
             speedup = base['ns'] / row['ns']
-            memory = row['bytes_per_particle']
+            memory = None if weighed is None else case_memory(
+                weighed[0], weighed[1], count, warmup + steps, weighed[2])
             print(f'| {label} | {count} | {steps} | {row["ms"]:.3f} | {row["ns"]:.1f} '
                   f'| {row["cpu_ns"]:.1f} | {speedup:.2f}x | {speedup / count:.0%} '
                   f'| {"yes" if same else "NO"} | {"-" if memory is None else f"{memory:.0f}"} '
