@@ -223,7 +223,7 @@ def build_grid(position, reach, order, class_start, shared):
     if shared:
         _blocks_shared(0, position, order, np.zeros(3), 1.0, 0, n, work, no_table)
     else:
-        _extent_in(position, 0, n, work.lowest, work.highest, 0)
+        _extent_in(position, np.int64(0), n, work.lowest, work.highest, np.int64(0))
     corner, high_corner = _least_greatest(work.lowest, work.highest, blocks)
     extent = 0.0
     for d in range(3):
@@ -623,7 +623,8 @@ def _dense_pairs(grid, item_reach, out_a, out_b):
     it that comes later), each one range of items. The exact test is
     ``_near``'s, so the set is ``_scan_class``'s.
     """
-    return _dense_range(grid, item_reach, out_a, out_b, 0, grid.item.size, 0, out_a.size)
+    return _dense_range(grid, item_reach, out_a, out_b, np.int64(0), grid.item.size,
+                        np.int64(0), out_a.size)
 
 
 @njit(cache=True)
@@ -665,7 +666,7 @@ def _items_reach(reach, item):
 @njit(cache=True)
 def _dense_candidates(grid, items):
     """Return how many candidates ``_dense_pairs`` writes for its first ``items`` items."""
-    return float(_dense_candidates_in(grid, 0, items))
+    return float(_dense_candidates_in(grid, np.int64(0), items))
 
 
 @njit(cache=True)
@@ -795,7 +796,7 @@ def grid_pairs_shared(reach, grid, limit):
     kept = np.zeros(blocks + 1, dtype=np.int64)
     kept_a = np.empty(0, dtype=np.int64)
     kept_b = np.empty(0, dtype=np.int64)
-    first = 0
+    first = np.int64(0)
     while first < blocks:
         last = first + 1
         while last < blocks and offset[last + 1] - offset[first] <= room:
@@ -836,7 +837,7 @@ def grid_pairs(reach, grid, limit, motion):
     item_reach = _items_reach(reach, grid.item)
     size = min(2 * n + 16, limit.max_pairs)
     out_a, out_b = np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64)
-    count = 0
+    count = np.int64(0)
     classes = class_start.size - 1
     no_shift = (0.0, 0.0, 0.0)
     for k in range(classes):

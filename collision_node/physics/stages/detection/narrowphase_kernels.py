@@ -44,7 +44,7 @@ def find_overlaps(particles, candidate_first, candidate_second, ahead, margin, s
     out = ContactArrays(np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64),
                         np.empty((m, 3)), np.empty(m))
     kept = _overlaps_in(particles, candidate_first, candidate_second, (ahead, margin, sweep),
-                        out, 0, m, 0)
+                        out, np.int64(0), m, np.int64(0))
     return ContactArrays(out.first[:kept], out.second[:kept], out.normal[:kept],
                          out.penetration[:kept])
 

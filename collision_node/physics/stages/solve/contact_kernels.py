@@ -458,8 +458,8 @@ def _sweep_pairs(bodies, marks, pairs, impulses, settings, losses):
     """
     if settings.threads > 1 and pairs.colour_start.size > 1:
         return _sweep_colours(bodies, marks, pairs, impulses, settings, losses)
-    return _visit_range(bodies, marks, pairs, impulses, settings, losses, 0, pairs.order.size,
-                        _no_visits())
+    return _visit_range(bodies, marks, pairs, impulses, settings, losses, np.int64(0),
+                        pairs.order.size, _no_visits())
 
 
 @njit(cache=True)
@@ -657,7 +657,7 @@ def solve_contacts(bodies, marks, pairs, walls, pair_impulses, wall_impulses, se
     single = _start_solve(bodies, marks, pairs, walls, pair_impulses, wall_impulses, settings,
                           losses)
     has_walls = walls.start.size > 1
-    first_wall_visit = True
+    first_wall_visit = np.bool_(True)
     sweeps = 0
     for _ in range(budget):
         sweeps += 1

@@ -145,7 +145,7 @@ def _wall_pass(bodies, position, planes, coefficients, motion, shared):
     slop, ahead = motion.near_slop, ulps + motion.near_ahead
     floats = np.empty((64, FLOAT_COLUMNS))
     ints = np.empty((64, 3), dtype=np.int64)
-    count = 0
+    count = np.int64(0)
     # The particles near or past a plane as the step ends (branch-free passes;
     # the bound is >= 0, so every particle past a plane is flagged). Moving a
     # particle along one plane's axis changes no other particle's gaps.

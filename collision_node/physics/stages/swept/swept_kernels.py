@@ -512,7 +512,7 @@ def _predict_straight(particles, pairs, clock, count, settings):
     n_pending = 0
     if settings.threads > 1 and count >= PARALLEL_MIN_ITEMS:
         # The times on the threads, then the due pairs listed in pair order.
-        _pair_times_parallel(particles, pairs, clock, settings, count, False)
+        _pair_times_parallel(particles, pairs, clock, settings, count, np.bool_(False))
         for k in range(count):
             if pair_t[k] <= dt:
                 listed[k] = True
@@ -1352,10 +1352,10 @@ def _incidence_serial(first, second, m, n, start, fill, incident):
     """
     counts = fill[:n]
     counts[:] = 0
-    _count_pairs_in(first, second, counts, 0, m)
-    _first_slots_in(counts.reshape((1, n)), start, 0, 0, n)
+    _count_pairs_in(first, second, counts, np.int64(0), m)
+    _first_slots_in(counts.reshape((1, n)), start, np.int64(0), np.int64(0), n)
     start[n] = 2 * m
-    _place_pairs_in(first, second, counts, incident, 0, m)
+    _place_pairs_in(first, second, counts, incident, np.int64(0), m)
 
 
 @njit(cache=True, parallel=True)
@@ -1463,8 +1463,8 @@ def sweep(particles, own, box, settings, candidates, escapes, tally, pairs, cloc
     if settings.threads > 1 and max(n, m) >= PARALLEL_MIN_ITEMS:
         _set_up_shared(pairs, clock, incidence, candidates, n, m, settings.threads)
     else:
-        _pairs_from_candidates_in(pairs, candidates, 0, m)
-        _clear_particles_in(clock, incidence.extra_head, m, 0, n)
+        _pairs_from_candidates_in(pairs, candidates, np.int64(0), m)
+        _clear_particles_in(clock, incidence.extra_head, m, np.int64(0), n)
         _incidence_serial(pairs.first, pairs.second, m, n, incidence.start, incidence.fill,
                           incidence.pairs)
     # Counts start as np.int64(0), not the literal 0: a literal argument
