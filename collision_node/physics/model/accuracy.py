@@ -136,7 +136,7 @@ MAX_SUBSTEPS = 1000
 # 64): a chain of k touching balls needs k - 1, so 10^4 covers any chain a
 # scene holds in practice; the kernels count sweeps in int64.
 MAX_ITERATIONS = 10_000
-# Most separation passes per (sub)step under gravity (default 4, fast 6):
+# Most separation passes per (sub)step under gravity (default 6, accurate 4):
 # each visits every contact pair once, as a solver sweep does.
 MAX_SEPARATION_PASSES = 10_000
 # Most events per particle per step in event mode (default 10): a step may

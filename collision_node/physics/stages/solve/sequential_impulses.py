@@ -224,11 +224,20 @@ class SequentialImpulseStage(Stage):
         # share among threads, at every thread count (one result for all).
         colours = self.visit == 'colours' or i.size >= PARALLEL_MIN_ITEMS
         order = colour_start = _NO_ROWS
-        if colours:
-            order, colour_start = colour_order(i, j, state.dynamic)
         # Gaps (> 0: found before touching) of the narrowphase's speculative pairs.
         gap = (np.ascontiguousarray(-contacts.penetration, dtype=float) if speculative
                else _NO_VALUES)
+        # With colours the kernel gets the pairs rearranged in visit order, so every
+        # sweep reads each pair's data in sequence rather than colour by colour across
+        # the whole array; ``rank`` maps them back for the impact log.
+        rank = None
+        if colours:
+            visit, colour_start = colour_order(i, j, state.dynamic)
+            rank = np.empty_like(visit)
+            rank[visit] = np.arange(visit.size, dtype=np.int64)
+            i, j, normal = i[visit], j[visit], np.ascontiguousarray(normal[visit])
+            gap = gap[visit] if gap.size else gap
+            order = np.arange(visit.size, dtype=np.int64)
         settings = SolverSettings(
             threshold > 0.0, threshold, float(RESIDUAL_FRACTION * threshold),
             float(STRIKE_FACTOR), int(self.iterations), friction, ctx.dimensions == 2,
@@ -272,6 +281,10 @@ class SequentialImpulseStage(Stage):
         ctx.stats.wall_collisions += int(np.count_nonzero(wall_impulses.hit))
         if ctx.impacts is None:
             return
+        if rank is not None:
+            # Back to the narrowphase's order: the log lists pairs as it found them.
+            i, j, normal = i[rank], j[rank], normal[rank]
+            pairs = type(pairs)(*(field[rank] for field in pairs))
         pushed = pairs.normal > 0.0
         record_pairs(ctx.impacts, ctx.time, state.position, state.radius, i[pushed], j[pushed],
                      normal[pushed], pairs.normal[pushed], pairs.tangential[pushed],
