@@ -143,6 +143,13 @@ def book_pair_loss(loss, effect, a, b, removed, share):
 
 
 @njit(cache=True, inline='always')
+def book_pair_total(booked, a, b, removed, share):
+    """Book a pair's loss to its particles' totals only (``book_pair_loss``'s BOOKED row)."""
+    booked[a] += removed * share
+    booked[b] += removed * (1.0 - share)
+
+
+@njit(cache=True, inline='always')
 def book_loss(loss, effect, p, removed):
     """Book a loss to particle ``p``."""
     loss[effect, p] += removed

@@ -30,7 +30,7 @@ from ...step import numba_cache  # noqa: F401,I100 (chooses numba's cache direct
 from numba import njit, prange  # noqa: E402,I100 (after the cache directory is chosen)
 
 from ...law.primitives import (apply_pair_normal, apply_tangential, apply_wall_normal, Bodies,
-                               BOOKED, book_loss, book_pair_loss, closing_allowance,
+                               book_pair_total, closing_allowance,
                                combined_coefficient, dot3, EFFECTS, FRICTION,
                                friction_accumulated, into_cone, loss_share, pair_friction_spun,
                                push_pair, push_wall, RESTITUTION, spin_factor, STICK_FACTOR,
@@ -157,9 +157,9 @@ class ParticleMarks(NamedTuple):
 
 
 class Losses(NamedTuple):
-    """Energy removed: per effect row and particle (rows ``EFFECTS``, then ``BOOKED``)."""
+    """Energy removed: per particle (all effects together) and per effect."""
 
-    per_particle: np.ndarray
+    booked: np.ndarray       # (n,) per particle, J: the step's bookings so far plus this solve's
     totals: np.ndarray       # per effect, J
 
 
@@ -253,7 +253,7 @@ def _solve_wall_plane(bodies, marks, walls, impulses, settings, tolerance, start
         else:
             continue
         any_hit = True
-        book_loss(losses.per_particle, WALLS, p, removed)
+        losses.booked[p] += removed
         losses.totals[WALLS] += removed
         impulses.normal[c] += magnitude
         if settings.friction:
@@ -268,7 +268,7 @@ def _solve_wall_plane(bodies, marks, walls, impulses, settings, tolerance, start
                 tangential, lost = pair_friction_spun(v, ang, inv_mass, radius, p, -1, normal,
                                                       magnitude, walls.friction[c],
                                                       settings.planar, spins)
-            book_loss(losses.per_particle, FRICTION, p, lost)
+            losses.booked[p] += lost
             losses.totals[FRICTION] += lost
             impulses.tangential[c] += tangential
     return any_hit
@@ -316,7 +316,7 @@ def _take_back_pairs(bodies, pairs, impulses, losses):
         magnitude = max(slack / (inv_mass[a] + inv_mass[b]), -resting[k])
         removed = push_pair(v, inv_mass, a, b, nx, ny, nz, magnitude, approach)
         resting[k] += magnitude
-        book_pair_loss(losses.per_particle, RESTITUTION, a, b, removed, pairs.share[k])
+        book_pair_total(losses.booked, a, b, removed, pairs.share[k])
         losses.totals[RESTITUTION] += removed
         impulses.normal[k] += magnitude
 
@@ -356,7 +356,7 @@ def _warm_start(bodies, marks, pairs, walls, pair_impulses, wall_impulses, setti
     (the accumulated impulse is clamped at 0).
     """
     v, inv_mass, normal = bodies.velocity, bodies.inv_mass, pairs.normal
-    loss, totals, spin = losses.per_particle, losses.totals, marks.spin
+    booked, totals, spin = losses.booked, losses.totals, marks.spin
     resting, resting_t = pair_impulses.resting, pair_impulses.resting_tangential
     for k in range(pairs.first.size):
         if pair_impulses.impact[k] or not resting[k] > 0.0:
@@ -367,13 +367,13 @@ def _warm_start(bodies, marks, pairs, walls, pair_impulses, wall_impulses, setti
         nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
         approach = -dot3(v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2], nx, ny, nz)
         removed = push_pair(v, inv_mass, a, b, nx, ny, nz, resting[k], approach)
-        book_pair_loss(loss, RESTITUTION, a, b, removed, pairs.share[k])
+        book_pair_total(booked, a, b, removed, pairs.share[k])
         totals[RESTITUTION] += removed
         pair_impulses.normal[k] += resting[k]
         if settings.friction:
             lost = _warm_tangential(bodies, a, b, (nx, ny, nz), pairs.friction[k] * resting[k],
                                     settings.planar, (spin[a], spin[b]), resting_t, k)
-            book_pair_loss(loss, FRICTION, a, b, lost, pairs.share[k])
+            book_pair_total(booked, a, b, lost, pairs.share[k])
             totals[FRICTION] += lost
         else:
             resting_t[k, 0] = resting_t[k, 1] = resting_t[k, 2] = 0.0
@@ -386,14 +386,14 @@ def _warm_start(bodies, marks, pairs, walls, pair_impulses, wall_impulses, setti
         p, axis, inward = walls.particle[c], walls.axis[c], walls.inward[c]
         approach = -inward * v[p, axis]
         removed = push_wall(v, inv_mass, p, axis, inward, resting[c], approach)
-        book_loss(loss, WALLS, p, removed)
+        booked[p] += removed
         totals[WALLS] += removed
         wall_impulses.normal[c] += resting[c]
         if settings.friction:
             lost = _warm_tangential(bodies, p, -1, _wall_normal(axis, inward),
                                     walls.friction[c] * resting[c], settings.planar,
                                     (spin[p], 0.0), resting_t, c)
-            book_loss(loss, FRICTION, p, lost)
+            booked[p] += lost
             totals[FRICTION] += lost
         else:
             resting_t[c, 0] = resting_t[c, 1] = resting_t[c, 2] = 0.0
@@ -480,7 +480,7 @@ def _visit_range(bodies, marks, pairs, impulses, settings, losses, start, stop, 
         settings.accumulate
     resting = impulses.resting
     allowance, ahead = pairs.allowance, pairs.ahead
-    per_particle, totals = losses.per_particle, losses.totals
+    booked, totals = losses.booked, losses.totals
     keep = visits[0].size > 0
     applied = False
     for q in range(start, stop):
@@ -543,7 +543,7 @@ def _visit_range(bodies, marks, pairs, impulses, settings, losses, start, stop, 
             resting[k] += magnitude
         else:
             continue
-        book_pair_loss(per_particle, RESTITUTION, a, b, removed, pairs.share[k])
+        book_pair_total(booked, a, b, removed, pairs.share[k])
         impulses.normal[k] += magnitude
         lost = 0.0
         if settings.friction:
@@ -557,7 +557,7 @@ def _visit_range(bodies, marks, pairs, impulses, settings, losses, start, stop, 
                 tangential, lost = pair_friction_spun(v, ang, inv_mass, radius, a, b,
                                                       (nx, ny, nz), magnitude, pairs.friction[k],
                                                       settings.planar, spins)
-            book_pair_loss(per_particle, FRICTION, a, b, lost, pairs.share[k])
+            book_pair_total(booked, a, b, lost, pairs.share[k])
             impulses.tangential[k] += tangential
         if keep:
             visits[0][q], visits[1][q], visits[2][q] = True, removed, lost
@@ -1175,15 +1175,11 @@ def _solve_step(bodies, position, ids, contacts, planes, coefficients, settings,
     marks = ParticleMarks(dynamic, np.zeros(n, dtype=np.bool_),
                           np.zeros(n if settings.friction else 0),
                           np.zeros((warm, 3)), np.zeros(warm, dtype=np.bool_))
-    # Per-particle rows are only added to, and only BOOKED is read back (filled
-    # from ``booked`` first when the step books per particle): no zeroing.
-    losses = Losses(np.empty((len(EFFECTS) + 1, n)), np.zeros(len(EFFECTS)))
-    for p in range(booked.size):
-        losses.per_particle[BOOKED, p] = booked[p]
+    # Per-particle bookings go straight into ``booked`` when the step books per
+    # particle; without, into scratch nothing reads (no zeroing).
+    losses = Losses(booked if booked.size == n else np.empty(n), np.zeros(len(EFFECTS)))
     sweeps = solve_contacts(bodies, marks, pairs, walls, pair_impulses, wall_impulses,
                             settings, losses, budget)
-    for p in range(booked.size):
-        booked[p] = losses.per_particle[BOOKED, p]
     return SolveResult(sweeps, losses.totals, pair_impulses, walls, wall_impulses,
                        _kept(ids, pairs, walls, pair_impulses, wall_impulses, keyed))
 
