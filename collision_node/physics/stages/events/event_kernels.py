@@ -36,6 +36,11 @@ differ meets at the first root of a quartic (``curved_delay``). The velocity
 update is the compiled contact law (``law.primitives``). Which particle
 predicts a pair, and when, decides the last bits of an impact time: another
 schedule gives the same impacts to round-off, not to the bit.
+
+Of the helpers, only the neighbour scan (``_scan``, ``pair_delay``) and the
+heap's sift run inlined into their callers: the rest are compiled once and
+called, which takes about 18 s off a first-start compile (numba types an
+inlined helper again at every call site) for no measured cost in a step.
 """
 
 from __future__ import annotations
@@ -258,7 +263,7 @@ def heapify(heap, schedule):
 
 # -- the candidate lists -------------------------------------------------------
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def _set_next(p, schedule, candidates):
     """Make particle p's key the earliest of its events and note which one it is.
 
@@ -281,7 +286,7 @@ def _set_next(p, schedule, candidates):
     own.next_event = which
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def _drop(p, k, schedule, candidates):
     """Remove candidate ``k`` of particle ``p`` (the last one takes its slot)."""
     last = schedule[p].held - 1
@@ -291,7 +296,7 @@ def _drop(p, k, schedule, candidates):
     schedule[p].held = last
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def _hold(p, q, at, stamp, schedule, candidates):
     """Add pair candidate (q at ``at``) to p's list; a full list drops its latest.
 
@@ -320,7 +325,7 @@ def _hold(p, q, at, stamp, schedule, candidates):
 
 # -- paths --------------------------------------------------------------------
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def _advance(settings, particles, supports, schedule, p, when):
     """Bring particle ``p`` to time ``when`` on its parabola.
 
@@ -366,7 +371,7 @@ def pair_delay(dx, dy, dz, rx, ry, rz, reach):
     return sphere_contact_time(ox, oy, oz, ux, uy, uz, dx, dy, dz, rx, ry, rz)
 
 
-@njit(cache=True, error_model='numpy', inline='always')
+@njit(cache=True, error_model='numpy')
 def _curved_gap(ox, oy, oz, wx, wy, wz, hx, hy, hz, s):
     """Return F(s) = |o + w s + h s^2|^2 - 1 (a pair's scaled squared distance less 1)."""
     x = ox + (wx + hx * s) * s
@@ -375,7 +380,7 @@ def _curved_gap(ox, oy, oz, wx, wy, wz, hx, hy, hz, s):
     return dot3(x, y, z, x, y, z) - 1.0
 
 
-@njit(cache=True, error_model='numpy', inline='always')
+@njit(cache=True, error_model='numpy')
 def _curved_slope(ox, oy, oz, wx, wy, wz, hx, hy, hz, s):
     """Return F'(s) / 2 = D(s) . D'(s), D(s) = o + w s + h s^2 (a cubic in s)."""
     x = ox + (wx + hx * s) * s
@@ -384,7 +389,7 @@ def _curved_slope(ox, oy, oz, wx, wy, wz, hx, hy, hz, s):
     return dot3(x, y, z, wx + 2.0 * hx * s, wy + 2.0 * hy * s, wz + 2.0 * hz * s)
 
 
-@njit(cache=True, error_model='numpy', inline='always')
+@njit(cache=True, error_model='numpy')
 def _slope_root(ox, oy, oz, wx, wy, wz, hx, hy, hz, lo, hi):
     """Return the root of F' in [lo, hi], where F' is monotonic; inf if it keeps its sign."""
     g_lo = _curved_slope(ox, oy, oz, wx, wy, wz, hx, hy, hz, lo)
@@ -486,7 +491,7 @@ def curved_delay(dx, dy, dz, ux, uy, uz, ax, ay, az, reach, horizon):
     return _INF
 
 
-@njit(cache=True, error_model='numpy', inline='always')
+@njit(cache=True, error_model='numpy')
 def _varied_delay(p, q, when, horizon, particles, supports, schedule):
     """Return when pair (p, q) meets, each with its own acceleration (``own_acceleration``).
 
@@ -524,14 +529,14 @@ def _varied_delay(p, q, when, horizon, particles, supports, schedule):
 
 # -- the cell grid ------------------------------------------------------------
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def _slot(p, grid):
     """Return the slot of particle p's cell."""
     table, slot = grid.table, grid.slot
     return (slot[p, 0] * table[1] + slot[p, 1]) * table[2] + slot[p, 2]
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def _insert(p, grid):
     """Put particle ``p`` at the head of its cell's slot list."""
     s = _slot(p, grid)
@@ -543,7 +548,7 @@ def _insert(p, grid):
     grid.occupancy[s] += 1
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def _remove(p, grid):
     """Take particle ``p`` out of its cell's slot list."""
     s = _slot(p, grid)
@@ -559,7 +564,7 @@ def _remove(p, grid):
 
 # -- prediction ---------------------------------------------------------------
 
-@njit(cache=True, error_model='numpy', inline='always')
+@njit(cache=True, error_model='numpy')
 def _own_events(p, settings, particles, supports, grid, schedule, walls_too):
     """Delays until p (at its reference time) leaves its cell and reaches a wall.
 
@@ -705,7 +710,7 @@ def _predict(p, bump, skip_before, settings, particles, supports, grid, schedule
     _set_next(p, schedule, candidates)
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def _enter_cell(p, grid, schedule, candidates):
     """Move p into the next cell; return the axis and side (+1, -1) of its new layer.
 
@@ -733,7 +738,7 @@ def _enter_cell(p, grid, schedule, candidates):
 
 # -- events -------------------------------------------------------------------
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def _outcome(status, counts):
     """Return the ``Outcome`` of a run that ends with ``status`` (``counts``: the tally's row)."""
     return Outcome(status, counts.events, counts.collisions, counts.wall_collisions,
@@ -741,7 +746,7 @@ def _outcome(status, counts):
                    counts.booked_walls, counts.restitution_dissipated, counts.walls_dissipated)
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def _record(impacts, tally, when, first, second, point, normal, impulse, approach):
     """Append one impact (room is checked before each event); point, normal: 3-tuples."""
     counts = tally[0]
@@ -754,7 +759,7 @@ def _record(impacts, tally, when, first, second, point, normal, impulse, approac
     counts.recorded = k + 1
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def _keeps_supports(supports, p, normal):
     """Say whether an impulse along ``normal`` (a 3-tuple) on p leaves its supports as they are.
 
