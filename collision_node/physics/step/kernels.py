@@ -38,9 +38,8 @@ MODULES = (primitives, contact_kernels, narrowphase_kernels, separation_kernels,
 # cache instead of compiling them twice (and never write the same cache entry at once).
 SHARED = (primitives, step_kernels)
 # Two shares of about equal compile time, each module after the modules it calls; the
-# first is compiled by a helper process, the second by the process that prepares. One
-# process, fresh cache: swept 136 s, grid 75, contact 71, event 27, separation 21, wall
-# 18, resting 6, narrowphase 4, sleep 2, order 1 (the first share 176 s, the second 185).
+# first is compiled by a helper process, the second by the process that prepares. The
+# swept kernels take the most; the grid and contact kernels come next (`bench compile`).
 SHARES = ((resting_kernels, event_kernels, swept_kernels, narrowphase_kernels, sleep_kernels,
            order_kernels),
           (wall_kernels, contact_kernels, separation_kernels, grid_kernels))

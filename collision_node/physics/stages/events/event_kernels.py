@@ -38,9 +38,9 @@ predicts a pair, and when, decides the last bits of an impact time: another
 schedule gives the same impacts to round-off, not to the bit.
 
 Of the helpers, only the neighbour scan (``_scan``, ``pair_delay``) and the
-heap's sift run inlined into their callers: the rest are compiled once and
-called, which takes about 18 s off a first-start compile (numba types an
-inlined helper again at every call site) for no measured cost in a step.
+heap's sift run inlined into their callers, where the step's time goes: the
+rest are compiled once and called, since numba types an inlined helper again
+at every call site, which lengthens the first-start compile.
 """
 
 from __future__ import annotations
