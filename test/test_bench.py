@@ -120,6 +120,23 @@ def test_pile_bench_records_its_tables(tmp_path, monkeypatch, capsys):
     assert balanced[:2] == ['balanced', '1'] and balanced[9] == '0' and float(balanced[4]) > 0
 
 
+def test_pile_bench_3d_runs_name_a_preset_and_its_substeps(capsys, monkeypatch):
+    from collision_node.bench.contact.pile import pile3d_run
+    assert pile3d_run('fast') == ('fast', 0) and pile3d_run('balanced:4') == ('balanced', 4)
+    for bad, why in (('exact', 'the preset must be one of fast, balanced, accurate'),
+                     ('fast:x', 'substeps must be an integer'),
+                     ('fast:0', 'substeps must be from 1 to 1000')):
+        with pytest.raises(SystemExit):
+            bench.main(['pile', '--presets3d', bad])
+        assert f"argument --presets3d: '{bad}': {why}" in capsys.readouterr().err
+    monkeypatch.setitem(sys.modules, 'mujoco', None)
+    assert bench.main(['pile', '--steps', '1', '--presets', 'fast', '--no-pymunk',
+                       '--count3d', '30', '--steps3d', '2', '--presets3d', 'fast',
+                       'fast:3']) == 0
+    fast, substepped = _table(capsys.readouterr().out)[1:]
+    assert fast[:2] == ['fast', '2'] and substepped[:2] == ['fast, 3 substeps', '2']
+
+
 def _pile_with_mujoco(out) -> list:
     """Run the tiny pile bench with the MuJoCo row asked for; return the 3-D table's rows."""
     assert bench.main(['pile', '--steps', '1', '--presets', 'fast', '--no-pymunk',

@@ -21,7 +21,8 @@ to 1 % of the radius (its default, 0.1, is meant for pixels).
 
 The second table (skip it with ``--no-3d``) pours ``--count3d`` spheres
 (default 10,000, r = 5 cm, m = 0.1 kg, e = 0.3, mu = 0.5) into a 2.53 m
-square box (``scenarios.pour3d``) at dt = 1/60 s under ``balanced`` for
+square box (``scenarios.pour3d``) at dt = 1/60 s under ``balanced`` (or
+the runs of ``--presets3d``: ``fast:4`` is ``fast`` at 4 substeps a step) for
 ``--steps3d`` steps (default 240: 4 s, the pour and its settling) and
 reports ms per step, the real-time factor (simulated over wall seconds,
 one process, one core), the deepest overlap at the end over r (between
@@ -51,6 +52,7 @@ import numpy as np
 
 from ...physics.step.kernels import prepare as prepare_kernels
 from ...physics.step.reference import end_penetration
+from ...physics.model.accuracy import MAX_SUBSTEPS
 from ...physics.model.scene import load_scene
 from ...physics.model.validation import SceneError
 from ...physics.step.world import World
@@ -194,14 +196,51 @@ def run_pymunk(scene, steps: int) -> Optional[dict]:
                 ms=1e3 * wall / steps, cpu_ms=1e3 * cpu / steps)
 
 
-def run_pile3d(count: int, steps: int, preset: str, max_seconds: float = math.inf) -> dict:
-    """Pour the 3-D pile under ``preset``; return the real-time factor and quality."""
-    scene = pour3d(count, accuracy=preset)
+def pile3d_run(text: str) -> tuple[str, int]:
+    """Parse a 3-D pile run, ``PRESET`` or ``PRESET:SUBSTEPS``; return (preset, substeps).
+
+    ``fast:4`` is ``fast``'s settings at 4 substeps a step (0: the preset's own).
+    """
+    name, _, count = text.partition(':')
+    if name not in PRESETS[:3]:
+        raise argparse.ArgumentTypeError(
+            f'{text[:40]!r}: the preset must be one of {", ".join(PRESETS[:3])}')
+    if not count:
+        return name, 0
+    try:
+        substeps = int(count)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text[:40]!r}: substeps must be an integer') from None
+    if not 1 <= substeps <= MAX_SUBSTEPS:
+        raise argparse.ArgumentTypeError(
+            f'{text[:40]!r}: substeps must be from 1 to {MAX_SUBSTEPS}')
+    return name, substeps
+
+
+def _pile3d_option(text: str) -> str:
+    """Check a ``--presets3d`` item (``pile3d_run``) and keep it as written, for the record."""
+    pile3d_run(text)
+    return text
+
+
+def pile3d_label(preset: str, substeps: int = 0) -> str:
+    """Return a 3-D pile run's row label: the preset, and its substeps if given."""
+    return preset if not substeps else f'{preset}, {substeps} substeps'
+
+
+def run_pile3d(count: int, steps: int, preset: str, max_seconds: float = math.inf,
+               substeps: int = 0) -> dict:
+    """Pour the 3-D pile under ``preset`` (at ``substeps`` a step, 0: the preset's own).
+
+    Returns the real-time factor and quality.
+    """
+    accuracy = {'preset': preset, 'substeps': substeps} if substeps else preset
+    scene = pour3d(count, accuracy=accuracy)
     world = World(scene)
     done, wall, cpu = timed_steps(world, steps, max_seconds)
     s, walls = world.state, scene.effects.walls
     quality = pile_quality(s.position, s.velocity, s.radius, walls.low, walls.high, 3)
-    return dict(quality, label=preset, steps=done, ms=1e3 * wall / done,
+    return dict(quality, label=pile3d_label(preset, substeps), steps=done, ms=1e3 * wall / done,
                 cpu_ms=1e3 * cpu / done, real_time=done * scene.dt / wall,
                 cpu_real_time=done * scene.dt / cpu, profile=world.profile())
 
@@ -275,8 +314,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--count3d', type=int, default=10_000, help='spheres of the 3-D pile')
     parser.add_argument('--steps3d', type=int, default=240,
                         help='steps of the 3-D pile at dt = 1/60 (default 240: 4 s)')
-    parser.add_argument('--presets3d', nargs='+', default=['balanced'], choices=PRESETS[:3],
-                        help='presets of the 3-D pile (default: balanced)')
+    parser.add_argument('--presets3d', nargs='+', default=['balanced'], type=_pile3d_option,
+                        metavar='PRESET[:SUBSTEPS]',
+                        help='runs of the 3-D pile: a preset (fast, balanced, accurate), '
+                             'optionally at other substeps a step (fast:4); default balanced')
     parser.add_argument('--no-mujoco', action='store_true', help='skip the MuJoCo row')
     parser.add_argument('--profile', action='store_true',
                         help='after each table, the wall time per stage of every run '
@@ -348,8 +389,9 @@ def run_3d(args: argparse.Namespace) -> list:
     side = float(scene.effects.walls.high[0])
     print(f'3-D pile: {args.count3d} spheres (r = 5 cm, m = 0.1 kg, e = 0.3, mu = 0.5) poured '
           f'into a {side:.3g} m square box, dt = 1/60 s, {args.steps3d} steps; {_load_line()}')
-    rows3d = [run_pile3d(args.count3d, args.steps3d, preset, args.max_seconds)
-              for preset in args.presets3d]
+    runs = [pile3d_run(text) for text in args.presets3d]
+    rows3d = [run_pile3d(args.count3d, args.steps3d, preset, args.max_seconds, substeps)
+              for preset, substeps in runs]
     if not args.no_mujoco:
         reference = run_mujoco(args.count3d, args.steps3d, args.max_seconds)
         if reference is None:
