@@ -124,8 +124,9 @@ def test_pile_bench_3d_runs_name_a_preset_and_its_substeps(capsys, monkeypatch):
     from collision_node.bench.contact.pile import pile3d_run
     assert pile3d_run('fast') == ('fast', 0) and pile3d_run('balanced:4') == ('balanced', 4)
     for bad, why in (('exact', 'the preset must be one of fast, balanced, accurate'),
-                     ('fast:x', 'substeps must be an integer'),
-                     ('fast:0', 'substeps must be from 1 to 1000')):
+                     ('fast:x', "accuracy.substeps: expected an integer, got 'x'"),
+                     ('fast:0', 'accuracy.substeps: must be >= 1, got 0'),
+                     ('fast:1001', 'accuracy.substeps: must be <= 1000, got 1001')):
         with pytest.raises(SystemExit):
             bench.main(['pile', '--presets3d', bad])
         assert f"argument --presets3d: '{bad}': {why}" in capsys.readouterr().err

@@ -52,7 +52,7 @@ import numpy as np
 
 from ...physics.step.kernels import prepare as prepare_kernels
 from ...physics.step.reference import end_penetration
-from ...physics.model.accuracy import MAX_SUBSTEPS
+from ...physics.model.accuracy import parse_accuracy
 from ...physics.model.scene import load_scene
 from ...physics.model.validation import SceneError
 from ...physics.step.world import World
@@ -146,7 +146,6 @@ def run_preset(scene, preset: str, steps: int, max_seconds: float) -> dict:
 
 def _settings(preset: str):
     """Return the accuracy settings of a preset by name."""
-    from ...physics.model.accuracy import parse_accuracy
     return parse_accuracy(preset, 'bench pile: accuracy')
 
 
@@ -199,7 +198,8 @@ def run_pymunk(scene, steps: int) -> Optional[dict]:
 def pile3d_run(text: str) -> tuple[str, int]:
     """Parse a 3-D pile run, ``PRESET`` or ``PRESET:SUBSTEPS``; return (preset, substeps).
 
-    ``fast:4`` is ``fast``'s settings at 4 substeps a step (0: the preset's own).
+    ``fast:4`` is ``fast``'s settings at 4 substeps a step (0: the preset's own);
+    the substeps are checked by the scene's accuracy validator.
     """
     name, _, count = text.partition(':')
     if name not in PRESETS[:3]:
@@ -208,13 +208,11 @@ def pile3d_run(text: str) -> tuple[str, int]:
     if not count:
         return name, 0
     try:
-        substeps = int(count)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'{text[:40]!r}: substeps must be an integer') from None
-    if not 1 <= substeps <= MAX_SUBSTEPS:
-        raise argparse.ArgumentTypeError(
-            f'{text[:40]!r}: substeps must be from 1 to {MAX_SUBSTEPS}')
-    return name, substeps
+        settings = parse_accuracy({'preset': name, 'substeps': int(count) if count.isdigit()
+                                   else count}, 'accuracy')
+    except SceneError as error:
+        raise argparse.ArgumentTypeError(f'{text[:40]!r}: {error}') from None
+    return name, settings.substeps
 
 
 def _pile3d_option(text: str) -> str:
