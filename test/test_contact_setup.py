@@ -53,8 +53,9 @@ def test_compiled_wall_contacts_are_the_numpy_ones():
         np.testing.assert_array_equal(inward[lo:hi], plane_inward)
         if hi > lo:
             found[(plane_axis, plane)] = index[lo:hi]
-    # The floor and both side walls hold discs; the open top none.
-    assert len(found) == 3 and sum(v.size for v in found.values()) > 20
+    # The floor and both side walls hold awake discs (sleeping ones are static and
+    # touch nothing in the solve); the open top none.
+    assert len(found) == 3 and sum(v.size for v in found.values()) >= 10
     assert set(found) == {(w.axis, w.plane) for w in expected}
     for wall in expected:
         np.testing.assert_array_equal(found[(wall.axis, wall.plane)], wall.index)

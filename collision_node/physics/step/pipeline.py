@@ -94,6 +94,11 @@ class StepContext:
     # not known (every particle is tested). A stage that moves particles after
     # the walls stage must keep it true or set it to None.
     near_walls: Optional[np.ndarray] = None
+    # Under gravity, per particle (n, 3), m: how far the contact solve's
+    # resting impulses held each particle up over this (sub)step
+    # (``contact_kernels.support_shift``); the separation stage moves the
+    # particles by it, as a lift it pays for. None: no solve set it.
+    support_shift: Optional[np.ndarray] = None
     # Energy the contact law and the effects removed in this (sub)step, per
     # particle, J: the separation stage budgets a lift per cluster of
     # touching particles from it, never from losses elsewhere. Kept only

@@ -1293,6 +1293,95 @@ def _jacobi_sweeps(bodies, contacts, coefficients, iterations):
                         particle[:count].copy(), removed[:count].copy())
 
 
+@njit(cache=True, nogil=True)
+def support_shift(inv_mass, contacts, pair_impulses, walls, wall_impulses, fall, dt):
+    """Return how far the step's resting contacts held each particle up (``_support_shift``).
+
+    The records (``StepContacts``, ``ContactImpulses``, ``WallContacts``)
+    come as plain tuples, as ``solve_step`` takes them.
+    """
+    return _support_shift(inv_mass, StepContacts(*contacts), ContactImpulses(*pair_impulses),
+                          WallContacts(*walls), ContactImpulses(*wall_impulses), fall, dt)
+
+
+@njit(cache=True)
+def _support_shift(inv_mass, contacts, pair_impulses, walls, wall_impulses, fall, dt):
+    """Return, per particle, how far the step's resting contacts held it up, m (n, 3).
+
+    The drift took every particle along its free parabola, g dt^2 / 2 below
+    the straight path; a resting contact's impulse stands for a force that
+    acted all through the step. Per particle, u is the velocity change of
+    its accumulated resting impulses (normal and tangential with other
+    particles, tangential with walls: the walls stage already put a
+    particle that sank past a plane back on it) and k = -g dt (``fall`` is
+    g dt) the kick it undoes: the part
+    of the kick they carried is c = u min(1, max(0, k.u / |u|^2)), never
+    more than k, and a force c m / dt held through the step moves the
+    particle by c dt / 2. A particle at rest on its supports gets exactly
+    its sag back; one sliding on a slope gets its sag along the normal;
+    one nothing holds gets nothing. Only a chain of resting contacts to a
+    wall or a static particle holds anything up: in a cluster touching
+    neither (falling freely) the contacts only push its particles apart,
+    and none moves. ``contacts``: the pairs as the solve took them
+    (``StepContacts``), normals from ``second`` to ``first``.
+    """
+    n = inv_mass.shape[0]
+    held = np.zeros((n, 3))
+    first, second, normal = contacts.first, contacts.second, contacts.normal
+    resting, tangential = pair_impulses.resting, pair_impulses.resting_tangential
+    # Level 0 at a wall or a static particle, spread over the resting pairs.
+    level = np.full(n, UNSUPPORTED, dtype=np.int64)
+    count = 0
+    for k in range(first.size):
+        if resting[k] > 0.0:
+            count += 1
+    chain_first = np.empty(count, dtype=np.int64)
+    chain_second = np.empty(count, dtype=np.int64)
+    count = 0
+    for k in range(first.size):
+        if not resting[k] > 0.0:
+            continue
+        a, b = first[k], second[k]
+        chain_first[count], chain_second[count] = a, b
+        count += 1
+        if not inv_mass[a] > 0.0:
+            level[a] = 0
+        if not inv_mass[b] > 0.0:
+            level[b] = 0
+        jx = resting[k] * normal[k, 0] + tangential[k, 0]
+        jy = resting[k] * normal[k, 1] + tangential[k, 1]
+        jz = resting[k] * normal[k, 2] + tangential[k, 2]
+        held[a, 0] += inv_mass[a] * jx
+        held[a, 1] += inv_mass[a] * jy
+        held[a, 2] += inv_mass[a] * jz
+        held[b, 0] -= inv_mass[b] * jx
+        held[b, 1] -= inv_mass[b] * jy
+        held[b, 2] -= inv_mass[b] * jz
+    resting, tangential = wall_impulses.resting, wall_impulses.resting_tangential
+    for c in range(walls.particle.size):
+        if not resting[c] > 0.0:
+            continue
+        # The walls stage already put a particle its sag took past a plane back
+        # on it: only the wall's friction holds anything up here.
+        p = walls.particle[c]
+        level[p] = 0
+        w = inv_mass[p]
+        held[p, 0] += w * tangential[c, 0]
+        held[p, 1] += w * tangential[c, 1]
+        held[p, 2] += w * tangential[c, 2]
+    spread_levels(level, chain_first, chain_second)
+    kx, ky, kz = -fall[0], -fall[1], -fall[2]
+    for p in range(n):
+        ux, uy, uz = held[p, 0], held[p, 1], held[p, 2]
+        size = dot3(ux, uy, uz, ux, uy, uz)
+        if level[p] == UNSUPPORTED or not size > 0.0:
+            held[p, 0] = held[p, 1] = held[p, 2] = 0.0
+            continue
+        carried = min(1.0, max(0.0, dot3(kx, ky, kz, ux, uy, uz) / size)) * 0.5 * dt
+        held[p, 0], held[p, 1], held[p, 2] = carried * ux, carried * uy, carried * uz
+    return held
+
+
 def warm_up() -> None:
     """Call this module's kernels once on a tiny problem (compiles or loads the cache)."""
     from ...law.coloring import greedy_colors
@@ -1313,12 +1402,15 @@ def warm_up() -> None:
     cache = WarmStartCache(np.array([1], dtype=np.int64), np.ones(1), np.ones((1, 3)),
                            np.array([3], dtype=np.int64), np.ones(1), np.ones((1, 3)))
     for near in ((False, np.zeros(0, dtype=np.int64)), (True, np.arange(2))):
-        solve_step(tuple(bodies), position, ids, tuple(contacts), tuple(floor),
-                   tuple(coefficients), tuple(settings), tuple(cache), np.zeros(2), near)
+        result = solve_step(tuple(bodies), position, ids, tuple(contacts), tuple(floor),
+                            tuple(coefficients), tuple(settings), tuple(cache), np.zeros(2),
+                            near)
+        support_shift(bodies.inv_mass, tuple(contacts), tuple(result.pairs),
+                      tuple(result.walls), tuple(result.wall_impulses), (0.0, -0.1, 0.0), 0.01)
     jacobi_sweeps(tuple(bodies), tuple(contacts), tuple(coefficients), 4)
 
 
 def kernels() -> list:
     """Return the compiled kernels of this module (for ``kernels.prepare``)."""
     from ...law.coloring import greedy_colors
-    return [solve_step, jacobi_sweeps, greedy_colors]
+    return [solve_step, support_shift, jacobi_sweeps, greedy_colors]

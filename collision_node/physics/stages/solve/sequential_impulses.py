@@ -51,7 +51,7 @@ from ...model.tunables import (COLD_START_SWEEPS, PARALLEL_MIN_ITEMS, RESIDUAL_F
                                SPECULATIVE_MARGIN, STRIKE_FACTOR)
 from ...step.pipeline import Contacts, Stage, StepContext
 from .contact_kernels import (Coefficients, MAX_CACHED_ID, solve_step, SolverSettings,
-                              StepContacts, WarmStartCache)
+                              StepContacts, support_shift, WarmStartCache)
 from .wall_kernels import WallPlanes
 from .walls import wall_planes
 
@@ -253,15 +253,21 @@ class SequentialImpulseStage(Stage):
         bodies = Bodies(velocity, angular, np.ascontiguousarray(state.inv_mass, dtype=float),
                         np.ascontiguousarray(state.radius, dtype=float))
         # The records as plain tuples: the compiled dispatcher types those fast.
+        step_contacts = tuple(StepContacts(i, j, normal, order, gap, colour_start))
         result = solve_step(
             tuple(bodies), np.ascontiguousarray(state.position, dtype=float),
-            np.ascontiguousarray(state.ids, dtype=np.int64),
-            tuple(StepContacts(i, j, normal, order, gap, colour_start)),
+            np.ascontiguousarray(state.ids, dtype=np.int64), step_contacts,
             tuple(self._planes(ctx.dimensions)), tuple(coefficients), tuple(settings),
             tuple(self.cache.kept), ctx.losses if ctx.losses is not None else _NO_VALUES,
             (ctx.near_walls is not None,
              _NO_ROWS if ctx.near_walls is None else ctx.near_walls))
         self.cache.adopt(result.cache)
+        if ctx.effects.gravity is not None:
+            # How far the resting contacts held each particle up: the separation
+            # stage moves them by it (see ``contact_kernels.support_shift``).
+            ctx.support_shift = support_shift(
+                bodies.inv_mass, step_contacts, tuple(result.pairs), tuple(result.walls),
+                tuple(result.wall_impulses), self._fall(ctx), float(ctx.dt))
         self.sweeps += int(result.sweeps)
         self.solves += 1
         self.last_sweeps = int(result.sweeps)
