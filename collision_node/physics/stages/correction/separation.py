@@ -32,10 +32,7 @@ the part of that sag its resting impulses with other particles carried
 walls stage puts a particle its sag took past a wall plane back on it).
 A settled pile then ends each step where it began, and the passes only
 take out what the solve did not prevent (a pair the sweeps did not
-converge on, a spawn with ``allow_overlap``); without it every particle
-resting on others sank |g| dt^2 / 2 into them each step (2.7 % of r for
-r = 5 cm at dt = 1/60 s), which the passes could not lift out of a pile
-jammed wall to wall.
+converge on, a spawn with ``allow_overlap``).
 
 Under gravity, moving a particle changes its potential energy: a push that
 lifts is paid for. The budget is local: per cluster of
